@@ -1,0 +1,76 @@
+"""Horn's closed-form absolute orientation with unit quaternions, weighted.
+
+B. K. P. Horn, "Closed-form solution of absolute orientation using unit
+quaternions", J. Opt. Soc. Am. A 4(4), 1987.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import DegenerateInput
+from .transforms import apply, check_points, from_quaternion
+
+__all__ = ["RigidFit", "absolute_orientation"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigidFit:
+    """Result of a point-based rigid registration.
+
+    target_from_source : (4, 4) transform.
+    residuals_mm : (N,) distance of each transformed source point from its target (the per-point FRE).
+    fre_mm : weighted RMS of the residuals.
+    """
+
+    target_from_source: NDArray[np.float64]
+    residuals_mm: NDArray[np.float64]
+    fre_mm: float
+
+
+def absolute_orientation(
+    source_points: ArrayLike, target_points: ArrayLike, weights: ArrayLike | None = None
+) -> RigidFit:
+    """Rigid transform minimising ``sum w_i |R s_i + t - d_i|^2``.
+
+    Parameters
+    ----------
+    source_points, target_points : array, shape (N, 3)
+        Corresponding points, N >= 3 and not collinear.
+    weights : array, shape (N,), optional
+        Non-negative weights (e.g. inverse variances); default all ones.
+    """
+    s = check_points(source_points)
+    d = check_points(target_points)
+    if s.shape != d.shape:
+        raise DegenerateInput(f"point sets differ in shape: {s.shape} vs {d.shape}")
+    n = s.shape[0]
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w.shape != (n,) or np.any(w < 0) or w.sum() <= 0:
+        raise DegenerateInput("weights must be N non-negative numbers with a positive sum")
+    if np.count_nonzero(w) < 3:
+        raise DegenerateInput(f"absolute orientation needs at least 3 weighted points, got {np.count_nonzero(w)}")
+    wn = w / w.sum()
+    cs, cd = wn @ s, wn @ d
+    s0, d0 = s - cs, d - cd
+    if np.linalg.matrix_rank(s0[w > 0], tol=1e-6 * max(1.0, np.abs(s0).max())) < 2:
+        raise DegenerateInput("source points are collinear: the rotation about their line is undetermined")
+    m = (s0 * wn[:, None]).T @ d0  # M[a, b] = sum w s_a d_b
+    sxx, sxy, sxz = m[0]
+    syx, syy, syz = m[1]
+    szx, szy, szz = m[2]
+    n_mat = np.array([
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ])
+    vals, vecs = np.linalg.eigh(n_mat)
+    q = vecs[:, np.argmax(vals)]
+    t = from_quaternion(q)
+    t[:3, 3] = cd - t[:3, :3] @ cs
+    res = np.linalg.norm(apply(t, s) - d, axis=1)
+    return RigidFit(target_from_source=t, residuals_mm=res, fre_mm=float(np.sqrt(wn @ res**2)))
