@@ -122,6 +122,23 @@ class CArmView:
         p = k @ np.hstack([r, t[:, None]])
         return cls(projection_matrix=p, rows=rows, columns=columns, pixel_spacing_mm=(ps_row, ps_col))
 
+    def binned(self, factor: int) -> "CArmView":
+        """The same view on a detector binned ``factor`` x ``factor`` (multi-resolution).
+
+        A binned pixel's centre is the mean of the centres of the pixels it covers.
+        """
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"binning factor must be a positive integer, got {factor}")
+        off = (1.0 / f - 1.0) / 2.0
+        s = np.array([[1.0 / f, 0.0, off], [0.0, 1.0 / f, off], [0.0, 0.0, 1.0]])
+        return CArmView(
+            projection_matrix=s @ self.projection_matrix,
+            rows=self.rows // f,
+            columns=self.columns // f,
+            pixel_spacing_mm=(self.pixel_spacing_mm[0] * f, self.pixel_spacing_mm[1] * f),
+        )
+
     # -- decomposition -----------------------------------------------------------------
     def decompose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Split into (K (3, 3) with K[2, 2] = 1 and positive diagonal, source_from_carm (4, 4))."""

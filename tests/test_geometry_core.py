@@ -154,3 +154,23 @@ def test_line_projection_and_metrics():
     hit = axis.first_crossing(sphere, start_mm=-100, stop_mm=100)
     assert hit is not None and abs(np.linalg.norm(hit - centre) - 10) < 1e-6
     np.testing.assert_allclose(hit, axis.at(30.0)[0], atol=1e-6)
+
+
+def test_binned_view_matches_block_centres():
+    view = carm.CArmView.from_positioner(primary_deg=10, secondary_deg=5, **PAPER)
+    small = view.binned(4)
+    assert (small.rows, small.columns) == (244, 244)
+    x = np.array([[3.0, -7.0, 20.0]])
+    np.testing.assert_allclose(small.project(x), (view.project(x) - 1.5) / 4.0, atol=1e-9)
+
+
+def test_axis_and_transform_json_round_trip():
+    from drillnav.schemas.geometry_json import axis_from_json, axis_to_json, transform_from_json, transform_to_json
+
+    t = random_transform(RNG)
+    np.testing.assert_allclose(transform_from_json(transform_to_json(t)), t, atol=1e-12)
+    axis = Line3D(point_mm=[1, 2, 3], direction=[0, 0, 2])
+    back = axis_from_json(axis_to_json(axis))
+    np.testing.assert_allclose(back.direction, [0, 0, 1])
+    with pytest.raises(ValueError, match="carm_from_drill"):
+        transform_from_json([[1, 0], [0, 1]], name="carm_from_drill")
