@@ -18,6 +18,7 @@ __all__ = ["main", "build_parser", "CliError"]
 
 # Modules under drillnav.service that contribute subcommands.
 COMMAND_MODULES: tuple[str, ...] = (
+    "cli_markers",
 )
 
 EXIT_USAGE = 2
