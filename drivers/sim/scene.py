@@ -1,0 +1,235 @@
+"""A complete twin scene: patient on the table, markers on the skin, the drill camera, C-arm shots, truth.
+
+What is TRUE (used to render) and what the product is HANDED differ on purpose:
+the camera renders through the true lens but camera.json carries calibration
+error; the drill axis in drill.json is perturbed; BBs sit where manufacturing
+put them while markers.json holds the design; fluoroscopy images the exact
+analytic anatomy with beam hardening, scatter, quantum noise and blur.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.carm import CArmView
+from drillnav.registration.line import Line3D
+from drillnav.registration.markers import MarkerDesign, MarkerSet, default_marker_set
+from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform
+
+from . import anatomy
+from .camera import render_markers
+from .xray import MU_PER_MM, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
+
+__all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
+
+PAPER_CARM = dict(source_to_detector_mm=1164.0, source_to_isocenter_mm=624.0, pixel_spacing_mm=(0.304, 0.304), rows=976, columns=976)
+# Named positioner angles (primary LAO+, secondary CRA+). Inlet: beam tilted caudally; outlet: cranially.
+NAMED_VIEWS: dict[str, tuple[float, float]] = {
+    "ap": (0.0, 0.0),
+    "lateral": (90.0, 0.0),
+    "inlet": (0.0, -30.0),
+    "outlet": (0.0, 35.0),
+    "lao30": (30.0, 0.0),
+    "rao30": (-30.0, 0.0),
+}
+# The drill axis in the camera frame: 45 mm below the optical centre, converging on the optical axis at ~225 mm.
+TRUE_DRILL_AXIS_CAMERA = Line3D(point_mm=[0.0, 45.0, 0.0], direction=[0.0, -0.2, 1.0])
+TABLE_Y_MM = (135.0, 160.0)
+
+
+class SceneError(ValueError):
+    """A scene request that cannot be simulated (bad view, marker id, count)."""
+
+
+def parse_views(text: str) -> dict[str, tuple[float, float]]:
+    """'ap,outlet,20:-10' -> {name: (primary_deg, secondary_deg)}."""
+    views: dict[str, tuple[float, float]] = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        if item in NAMED_VIEWS:
+            views[item] = NAMED_VIEWS[item]
+            continue
+        try:
+            a, b = (float(v) for v in item.split(":"))
+        except ValueError:
+            raise SceneError(f"unknown view '{item}': use one of {', '.join(NAMED_VIEWS)} or PRIMARY:SECONDARY in degrees") from None
+        if not (-180 <= a <= 180 and -90 <= b <= 90):
+            raise SceneError(f"view '{item}': primary must be -180..180 and secondary -90..90 degrees")
+        views[f"p{a:+.0f}s{b:+.0f}"] = (a, b)
+    if not views:
+        raise SceneError("no views given")
+    return views
+
+
+@dataclass(frozen=True, kw_only=True)
+class Scene:
+    seed: int
+    marker_set: MarkerSet                      # the design, handed to the product
+    manufactured: dict[int, MarkerDesign]      # as built: BBs with manufacturing error
+    carm_from_ct: NDArray[np.float64]
+    carm_from_marker: dict[int, NDArray[np.float64]]
+    carm_from_drill: NDArray[np.float64]
+    true_camera: PinholeCamera
+    calibrated_camera: PinholeCamera           # handed to the product (with calibration error)
+    calibrated_axis_drill: Line3D              # handed to the product (with calibration error)
+    corridor: anatomy.Corridor
+    views: dict[str, CArmView]
+    view_angles: dict[str, tuple[float, float]]
+    fluoro_log: dict[str, NDArray[np.float32]] = field(default_factory=dict)
+    camera_image: NDArray[np.uint8] | None = None
+
+    @property
+    def drill_axis_carm(self) -> Line3D:
+        axis = TRUE_DRILL_AXIS_CAMERA.transformed(self.carm_from_drill)
+        return Line3D(point_mm=axis.closest_point(self.corridor_entry_carm_mm), direction=axis.direction)
+
+    @property
+    def corridor_entry_carm_mm(self) -> NDArray[np.float64]:
+        return apply(self.carm_from_ct, np.asarray(self.corridor.entry_mm))
+
+    def camera_from_marker(self, carm_from_drill: NDArray[np.float64] | None = None) -> dict[int, NDArray[np.float64]]:
+        drill_from_carm = invert(self.carm_from_drill if carm_from_drill is None else carm_from_drill)
+        return {i: drill_from_carm @ t for i, t in self.carm_from_marker.items()}
+
+    def render_camera(self, rng: np.random.Generator, *, carm_from_drill: NDArray[np.float64] | None = None, **kwargs) -> NDArray[np.uint8]:
+        return render_markers(camera=self.true_camera, camera_from_marker=self.camera_from_marker(carm_from_drill), markers=self.manufactured, rng=rng, **kwargs)
+
+    def drill_pose_towards(self, rng: np.random.Generator, *, offset_mm: float = 3.0, tilt_deg: float = 3.0, standoff_mm: float = 290.0) -> NDArray[np.float64]:
+        """A freehand drill pose aiming near the corridor entry (``carm_from_drill``)."""
+        return _drill_pose(rng, self.corridor, self.carm_from_ct, offset_mm=offset_mm, tilt_deg=tilt_deg, standoff_mm=standoff_mm)
+
+
+def _drill_pose(rng, corridor, carm_from_ct, *, offset_mm, tilt_deg, standoff_mm) -> NDArray[np.float64]:
+    entry = apply(carm_from_ct, np.asarray(corridor.entry_mm)) + rng.normal(scale=offset_mm / np.sqrt(3), size=3)
+    d = carm_from_ct[:3, :3] @ anatomy.corridor_direction(corridor)
+    d = Rotation.from_rotvec(np.radians(tilt_deg) * _unit(rng.normal(size=3))).apply(d)
+    d_cam = TRUE_DRILL_AXIS_CAMERA.direction
+    # Rotation taking the camera-frame axis direction onto d, then a random roll about d.
+    align, _ = Rotation.align_vectors([d], [d_cam])
+    roll = Rotation.from_rotvec(d * rng.uniform(-np.pi / 6, np.pi / 6))
+    r = (roll * align).as_matrix()
+    t = entry - standoff_mm * d - r @ TRUE_DRILL_AXIS_CAMERA.point_mm
+    return make_transform(r, t)
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.float64]]:
+    centre_v, _ = anatomy.skin_entry(corridor)
+    n = len(ids)
+    radius = 50.0 if n > 1 else 0.0
+    phase = rng.uniform(0, 2 * np.pi)
+    poses = {}
+    for k, marker_id in enumerate(ids):
+        a = phase + 2 * np.pi * k / n + rng.normal(scale=0.08)
+        r = radius + rng.normal(scale=2.0)
+        p, normal = anatomy.skin_point(centre_v[0] + r * np.cos(a), centre_v[2] + r * np.sin(a))
+        normal = Rotation.from_rotvec(np.radians(5.0) * _unit(rng.normal(size=3))).apply(normal)
+        z = _unit(normal)
+        x = _unit(np.cross([0.0, 0.0, 1.0], z))
+        y = np.cross(z, x)
+        spin = Rotation.from_rotvec(z * rng.uniform(0, 2 * np.pi)).as_matrix()
+        ct_from_marker = make_transform(spin @ np.stack([x, y, z], axis=1), p + 1.0 * z)  # resting on the drape
+        poses[marker_id] = carm_from_ct @ ct_from_marker
+    return poses
+
+
+def _perturbed_camera(rng, camera: PinholeCamera) -> PinholeCamera:
+    k = camera.camera_matrix.copy()
+    k[0, 0] *= 1 + rng.normal(scale=0.002)
+    k[1, 1] = k[0, 0] * (1 + rng.normal(scale=0.0005))
+    k[0, 2] += rng.normal(scale=0.8)
+    k[1, 2] += rng.normal(scale=0.8)
+    d = camera.distortion + rng.normal(scale=[0.003, 0.004, 0.0002, 0.0002, 0.002])
+    return PinholeCamera(width=camera.width, height=camera.height, camera_matrix=k, distortion=d)
+
+
+def _perturbed_axis(rng, axis: Line3D) -> Line3D:
+    d = Rotation.from_rotvec(np.radians(0.12) * _unit(rng.normal(size=3))).apply(axis.direction)
+    return Line3D(point_mm=axis.point_mm + rng.normal(scale=0.1, size=3), direction=d)
+
+
+def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dose_quanta: float = 12000.0) -> NDArray[np.float32]:
+    """Measured log attenuation (rows, columns) of one shot, with the twin's physics."""
+    view = scene.views[view_name]
+    rays = pixel_rays(view)
+    line = np.zeros((view.rows, view.columns))
+    add_ellipsoids(line, view, anatomy.pelvis_ellipsoids_carm(scene.carm_from_ct), rays=rays)
+    add_slab(line, view, y_min_mm=TABLE_Y_MM[0], y_max_mm=TABLE_Y_MM[1], mu=MU_PER_MM["table"], rays=rays)
+    for marker_id, pose in scene.carm_from_marker.items():
+        design = scene.manufactured[marker_id]
+        centres = apply(pose, design.bb_centers_mm)
+        add_spheres(line, view, centres, design.bb_diameters_mm / 2, MU_PER_MM["tungsten"])
+        add_ring(line, view, pose, radius_mm=design.ring_radius_mm, wire_diameter_mm=design.ring_wire_diameter_mm, mu=MU_PER_MM["tungsten"])
+    # Beam hardening: a polyenergetic beam attenuates less per mm the more it has crossed.
+    hardened = 6.0 * np.log1p(line / 6.0)
+    primary = dose_quanta * np.exp(-hardened)
+    scatter = 0.12 * cv2.GaussianBlur(primary, (0, 0), 35.0)
+    counts = rng.poisson(primary + scatter).astype(np.float64)
+    counts = cv2.GaussianBlur(counts, (0, 0), 0.6)
+    return (-np.log(np.maximum(counts, 0.5) / dose_quanta)).astype(np.float32)
+
+
+def make_scene(
+    *,
+    seed: int,
+    n_markers: int = 5,
+    marker_ids: list[int] | None = None,
+    views: str | dict[str, tuple[float, float]] = "inlet,outlet",
+    corridor: str = "AIIS-PSIS",
+    image_size: tuple[int, int] = (1280, 720),
+    render: bool = True,
+    bb_manufacturing_sigma_mm: float = 0.05,
+) -> Scene:
+    """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only)."""
+    rng = np.random.default_rng(seed)
+    design_set = default_marker_set()
+    if marker_ids is None:
+        if not 1 <= n_markers <= 7:
+            raise SceneError(f"--markers must be 1..7 (markers must fit the fluoroscopy field), got {n_markers}")
+        marker_ids = sorted(rng.choice(len(design_set.markers), size=n_markers, replace=False).tolist())
+    used = design_set.subset(marker_ids)
+    corridors = {c.name: c for c in anatomy.CORRIDORS}
+    if corridor not in corridors:
+        raise SceneError(f"unknown corridor '{corridor}': one of {', '.join(corridors)}")
+    target = corridors[corridor]
+    view_angles = parse_views(views) if isinstance(views, str) else dict(views)
+
+    # Patient on the table: the entry site near the isocentre, a few degrees and mm off.
+    skin, _ = anatomy.skin_entry(target)
+    centre_v = 0.5 * (skin + np.asarray(target.entry_mm))
+    carm_from_ct = from_rotvec(np.radians(2.0) * rng.normal(size=3))
+    carm_from_ct[:3, 3] = -carm_from_ct[:3, :3] @ centre_v + rng.normal(scale=8.0, size=3)
+
+    poses = _place_markers(rng, marker_ids, carm_from_ct, target)
+    manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}
+    true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=76.0, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
+    carm_from_drill = _drill_pose(rng, target, carm_from_ct, offset_mm=3.0, tilt_deg=3.0, standoff_mm=290.0)
+    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, **PAPER_CARM) for name, (a, b) in view_angles.items()}
+    scene = Scene(
+        seed=seed,
+        marker_set=used,
+        manufactured=manufactured,
+        carm_from_ct=carm_from_ct,
+        carm_from_marker=poses,
+        carm_from_drill=carm_from_drill,
+        true_camera=true_camera,
+        calibrated_camera=_perturbed_camera(rng, true_camera),
+        calibrated_axis_drill=_perturbed_axis(rng, TRUE_DRILL_AXIS_CAMERA),
+        corridor=target,
+        views=scene_views,
+        view_angles=view_angles,
+    )
+    if not render:
+        return scene
+    image_rng = np.random.default_rng([seed, 1])
+    fluoro = {name: render_fluoro(scene, name, image_rng) for name in scene_views}
+    camera_image = scene.render_camera(image_rng)
+    return Scene(**{**scene.__dict__, "fluoro_log": fluoro, "camera_image": camera_image})

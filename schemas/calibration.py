@@ -1,0 +1,95 @@
+"""camera.json and drill.json: the drill camera's intrinsics and the drill axis in its frame."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.line import Line3D
+
+from .geometry_json import axis_from_json, axis_to_json
+
+__all__ = [
+    "camera_calibration_to_json",
+    "camera_calibration_from_json",
+    "write_camera_calibration",
+    "read_camera_calibration",
+    "write_drill_calibration",
+    "read_drill_calibration",
+]
+
+
+def camera_calibration_to_json(camera: PinholeCamera, *, rms_px: float, per_view_errors_px: list[float], label: str) -> dict[str, Any]:
+    return {
+        "schema": "drillnav.camera/1",
+        "label": label,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "image_size": [camera.width, camera.height],
+        "camera_matrix": [[float(v) for v in row] for row in camera.camera_matrix],
+        "distortion": [float(v) for v in camera.distortion[:5]],
+        "rms_px": float(rms_px),
+        "per_view_errors_px": [float(v) for v in per_view_errors_px],
+    }
+
+
+def camera_calibration_from_json(doc: Any, *, source: str = "camera calibration") -> PinholeCamera:
+    """Build the camera; ``ValueError`` naming the missing or bad field otherwise."""
+    if not isinstance(doc, dict):
+        raise ValueError(f"{source}: expected a JSON object")
+    for key in ("image_size", "camera_matrix", "distortion"):
+        if key not in doc:
+            raise ValueError(f"{source}: missing field '{key}'")
+    try:
+        w, h = (int(v) for v in doc["image_size"])
+        k = np.asarray(doc["camera_matrix"], dtype=np.float64)
+        d = np.asarray(doc["distortion"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{source}: malformed image_size/camera_matrix/distortion ({exc})") from None
+    try:
+        return PinholeCamera(width=w, height=h, camera_matrix=k, distortion=d)
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+
+
+def _read_json(path: str | Path) -> Any:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such file")
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: not valid JSON ({exc})") from None
+
+
+def write_camera_calibration(path: str | Path, camera: PinholeCamera, *, rms_px: float, per_view_errors_px: list[float], label: str) -> None:
+    Path(path).write_text(json.dumps(camera_calibration_to_json(camera, rms_px=rms_px, per_view_errors_px=per_view_errors_px, label=label), indent=1))
+
+
+def read_camera_calibration(path: str | Path) -> PinholeCamera:
+    return camera_calibration_from_json(_read_json(path), source=str(path))
+
+
+def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: str, residual_mm: float, residual_deg: float, label: str) -> None:
+    doc = {
+        "schema": "drillnav.drill/1",
+        "label": label,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "frame": "drill camera D (OpenCV), mm; direction from the drill into the patient",
+        "axis_camera": axis_to_json(axis_camera),
+        "method": method,
+        "residual_mm": float(residual_mm),
+        "residual_deg": float(residual_deg),
+    }
+    Path(path).write_text(json.dumps(doc, indent=1))
+
+
+def read_drill_calibration(path: str | Path) -> Line3D:
+    doc = _read_json(path)
+    if not isinstance(doc, dict) or "axis_camera" not in doc:
+        raise ValueError(f"{path}: missing field 'axis_camera'")
+    return axis_from_json(doc["axis_camera"], name=f"{path}: axis_camera")
