@@ -33,8 +33,8 @@ PAPER_CARM = dict(source_to_detector_mm=1164.0, source_to_isocenter_mm=624.0, pi
 NAMED_VIEWS: dict[str, tuple[float, float]] = {
     "ap": (0.0, 0.0),
     "lateral": (90.0, 0.0),
-    "inlet": (0.0, -30.0),
-    "outlet": (0.0, 35.0),
+    "inlet": (0.0, -25.0),
+    "outlet": (0.0, 30.0),
     "lao30": (30.0, 0.0),
     "rao30": (-30.0, 0.0),
 }
@@ -204,9 +204,9 @@ def make_scene(
 
     # Patient on the table: the entry site near the isocentre, a few degrees and mm off.
     skin, _ = anatomy.skin_entry(target)
-    centre_v = 0.5 * (skin + np.asarray(target.entry_mm))
+    centre_v = 0.8 * skin + 0.2 * np.asarray(target.entry_mm)
     carm_from_ct = from_rotvec(np.radians(2.0) * rng.normal(size=3))
-    carm_from_ct[:3, 3] = -carm_from_ct[:3, :3] @ centre_v + rng.normal(scale=8.0, size=3)
+    carm_from_ct[:3, 3] = -carm_from_ct[:3, :3] @ centre_v + rng.normal(scale=3.0, size=3)
 
     poses = _place_markers(rng, marker_ids, carm_from_ct, target)
     manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}

@@ -1,0 +1,186 @@
+"""Marker detection in fluoroscopy: wire rings (ellipses) and BBs (sub-pixel blobs), identified by BB pattern.
+
+Input is a log-attenuation image (rows, columns): larger = more attenuation.
+A white top-hat removes anatomy; an opening separates the BBs (discs of
+10-25 px) from the thin wire (4-6 px wide). Each ring is a large thin
+connected component fitted with an ellipse; the BBs inside it are rectified
+into the marker plane through the ellipse (circle of 24 mm) and matched with
+:func:`drillnav.registration.markers.identify`. A ring that touches the image
+border, or two rings that merge, are reported, not guessed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .markers import MarkerNotIdentified, MarkerSet, identify
+
+__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_markers"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetectedBB:
+    center_px: NDArray[np.float64]  # (2,) column, row
+    diameter_px: float
+    large: bool
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetectedMarker:
+    """One identified marker in one view.
+
+    bb_index : (N,) design BB index of each detected BB (-1: unmatched).
+    ring_ellipse : ((cx, cy), (major, minor), angle_deg) as cv2.fitEllipse gives it.
+    """
+
+    marker_id: int
+    bbs: tuple[DetectedBB, ...]
+    bb_index: NDArray[np.int64]
+    ring_ellipse: tuple
+    mirrored: bool
+    identification_cost_mm: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class RejectedRing:
+    reason: str
+    center_px: NDArray[np.float64]
+
+
+@dataclass(frozen=True, kw_only=True)
+class FluoroDetections:
+    markers: tuple[DetectedMarker, ...]
+    rejected: tuple[RejectedRing, ...]
+
+    def by_id(self) -> dict[int, DetectedMarker]:
+        return {m.marker_id: m for m in self.markers}
+
+
+def _blobs(bb_image: NDArray[np.float32], threshold: float) -> list[tuple[NDArray[np.float64], float]]:
+    mask = (bb_image > threshold).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    out = []
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        if area < 12 or w > 60 or h > 60:
+            continue
+        win = bb_image[y : y + h, x : x + w] * (labels[y : y + h, x : x + w] == i)
+        peak = float(win.max())
+        # Diameter from the half-maximum footprint: a sphere's chord profile falls to half at 0.866 r.
+        half = np.count_nonzero(win > 0.5 * peak)
+        d_half = 2.0 * np.sqrt(half / np.pi) / 0.866
+        yy, xx = np.mgrid[y : y + h, x : x + w]
+        wsum = win.sum()
+        out.append((np.array([(xx * win).sum() / wsum, (yy * win).sum() / wsum]), d_half))
+    return out
+
+
+def detect_markers(
+    image_log: NDArray[np.float32],
+    marker_set: MarkerSet,
+    *,
+    pixel_spacing_mm: float = 0.304,
+    magnification_range: tuple[float, float] = (1.2, 2.2),
+) -> FluoroDetections:
+    """Find, measure and identify every marker in one view."""
+    img = np.asarray(image_log, dtype=np.float32)
+    if img.ndim != 2:
+        raise ValueError(f"expected a 2D image, got shape {img.shape}")
+    ring_r = marker_set.markers[0].ring_radius_mm
+    big_bb_px = 3.5 * magnification_range[1] / pixel_spacing_mm
+    k = int(2 * big_bb_px + 7) | 1
+    smooth = cv2.GaussianBlur(img, (0, 0), 0.8)
+    tophat = cv2.morphologyEx(smooth, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    wire_px = 0.8 * magnification_range[1] / pixel_spacing_mm
+    open_k = int(wire_px + 1) | 1
+    bb_image = cv2.morphologyEx(tophat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (open_k, open_k)))
+    wire_image = tophat - bb_image
+    noise = 1.4826 * float(np.median(np.abs(tophat - np.median(tophat))))
+    blobs = _blobs(bb_image, max(0.8, 6 * noise))
+    wire_mask = (wire_image > max(0.5, 5 * noise)).astype(np.uint8)
+    wire_mask = cv2.morphologyEx(wire_mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(wire_mask, connectivity=8)
+    min_ring_px = 2 * ring_r * magnification_range[0] / pixel_spacing_mm * 0.3
+    max_ring_px = 2 * ring_r * magnification_range[1] / pixel_spacing_mm * 1.1
+    rows, cols = img.shape
+    markers: list[DetectedMarker] = []
+    rejected: list[RejectedRing] = []
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        if max(w, h) < min_ring_px or area < 100:
+            continue
+        pts = np.column_stack(np.nonzero(labels == i)[::-1]).astype(np.float32)
+        centre = pts.mean(axis=0)
+        if max(w, h) > max_ring_px:
+            rejected.append(RejectedRing(reason="rings overlap in projection", center_px=centre.astype(float)))
+            continue
+        if x <= 1 or y <= 1 or x + w >= cols - 1 or y + h >= rows - 1:
+            rejected.append(RejectedRing(reason="ring partly outside the field of view", center_px=centre.astype(float)))
+            continue
+        ellipse = cv2.fitEllipse(pts)
+        (cx, cy), (d1, d2), angle = ellipse
+        major, minor = max(d1, d2) / 2.0, min(d1, d2) / 2.0
+        if minor < 0.25 * major:
+            rejected.append(RejectedRing(reason="marker seen edge-on (ring ellipse too flat to identify)", center_px=np.array([cx, cy])))
+            continue
+        inside = [b for b in blobs if _inside(b[0], ellipse, 0.9)]
+        if len(inside) < 3:
+            rejected.append(RejectedRing(reason=f"only {len(inside)} BBs inside the ring", center_px=np.array([cx, cy])))
+            continue
+        scale = major / ring_r  # px per mm at the marker
+        centers = np.array([b[0] for b in inside])
+        diam_px = np.array([b[1] for b in inside])
+        # The smallest BB of every marker is 2.0 mm (the central one): it calibrates the size estimate.
+        diam_mm = diam_px * (2.0 / diam_px.min())
+        plane = _rectify(centers, ellipse) / scale
+        # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
+        ident, last_error = None, None
+        order = np.argsort(np.linalg.norm(plane, axis=1))
+        for c in order[:3]:
+            if diam_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
+                continue
+            try:
+                candidate = identify(plane - plane[c], diam_mm, marker_set)
+            except MarkerNotIdentified as exc:
+                last_error = exc
+                continue
+            if ident is None or candidate.cost < ident.cost:
+                ident = candidate
+        if ident is None:
+            reason = str(last_error) if last_error else "no central BB found inside the ring"
+            rejected.append(RejectedRing(reason=reason, center_px=np.array([cx, cy])))
+            continue
+        bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
+        markers.append(DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost))
+    ids = [m.marker_id for m in markers]
+    dup = {i for i in ids if ids.count(i) > 1}
+    if dup:
+        for m in [m for m in markers if m.marker_id in dup]:
+            rejected.append(RejectedRing(reason=f"marker id {m.marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
+        markers = [m for m in markers if m.marker_id not in dup]
+    return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected))
+
+
+def _inside(p, ellipse, factor: float) -> bool:
+    (cx, cy), (d1, d2), angle = ellipse
+    a = np.radians(angle)
+    dx, dy = p[0] - cx, p[1] - cy
+    u = dx * np.cos(a) + dy * np.sin(a)
+    v = -dx * np.sin(a) + dy * np.cos(a)
+    return (u / (d1 / 2 * factor)) ** 2 + (v / (d2 / 2 * factor)) ** 2 <= 1.0
+
+
+def _rectify(points: NDArray[np.float64], ellipse) -> NDArray[np.float64]:
+    """Map image points into the circle's frame: stretch the ellipse's minor axis to the major (weak perspective)."""
+    (cx, cy), (d1, d2), angle = ellipse
+    a = np.radians(angle)
+    rot = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+    local = (points - [cx, cy]) @ rot.T
+    major = max(d1, d2)
+    local[:, 0] *= major / d1
+    local[:, 1] *= major / d2
+    return local

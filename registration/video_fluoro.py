@@ -1,0 +1,153 @@
+"""Video-to-fluoroscopy registration: ``carm_from_drill`` from markers seen by both the camera and the C-arm.
+
+1. Horn (weighted by the video covariances) between X_D(m) and X_C(m), the reference's method.
+2. Joint PnP on every tag corner: the corners' 3D positions in C (from each
+   registered marker pose and the design) against their sub-pixel image
+   positions, so all markers constrain the camera pose together.
+3. An outlier marker (e.g. one bumped since the shot) is rejected by its
+   point-based residual (leave-one-out), and per-marker FRE is reported.
+4. A predicted error for the drill axis by Monte-Carlo propagation of the
+   input uncertainties.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import PinholeCamera
+from .errors import DegenerateInput, MarkersNotFound
+from .horn import absolute_orientation
+from .line import Line3D
+from .marker_pose import MarkerPose
+from .markers import MarkerSet
+from .transforms import apply, invert, make_transform
+from .video_markers import VideoDetections
+
+__all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PredictedError:
+    """1-sigma-based 95 % figures of the drill axis: position at the working point (mm) and angle (deg)."""
+
+    position_mm: float
+    angle_deg: float
+    cone_half_angle_deg: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class DrillRegistration:
+    """carm_from_drill (4, 4); fre_mm: per-marker distance between X_C and the registered X_D."""
+
+    carm_from_drill: NDArray[np.float64]
+    carm_from_drill_horn: NDArray[np.float64]
+    fre_mm: dict[int, float]
+    used_ids: tuple[int, ...]
+    rejected_ids: tuple[int, ...]
+    corner_rms_px: float
+
+
+def register_video_to_fluoro(
+    video: VideoDetections,
+    marker_poses: tuple[MarkerPose, ...],
+    marker_set: MarkerSet,
+    camera: PinholeCamera,
+    *,
+    outlier_mm: float = 2.5,
+    min_markers: int = 3,
+) -> DrillRegistration:
+    poses = {p.marker_id: p for p in marker_poses if p.converged}
+    vids = video.by_id()
+    common = sorted(set(poses) & set(vids))
+    if len(common) < min_markers:
+        raise MarkersNotFound(
+            f"only {len(common)} marker(s) seen by both the camera and fluoroscopy "
+            f"(camera: {sorted(vids)}, fluoroscopy: {sorted(poses)}); at least {min_markers} are needed"
+        )
+    used = list(common)
+    rejected: list[int] = []
+    while True:
+        fit = _horn(used, vids, poses)
+        worst = int(np.argmax(fit.residuals_mm))
+        if fit.residuals_mm[worst] <= outlier_mm or len(used) <= min_markers:
+            break
+        # Leave-one-out: does the fit without the worst marker explain the others well?
+        rest = [i for k, i in enumerate(used) if k != worst]
+        if _horn(rest, vids, poses).fre_mm < fit.fre_mm:
+            rejected.append(used.pop(worst))
+        else:
+            break
+    carm_from_drill_horn = fit.target_from_source
+    # Joint PnP on all tag corners of the markers kept.
+    obj, img = [], []
+    for i in used:
+        design = marker_set.by_id(i)
+        obj.append(apply(poses[i].carm_from_marker, design.tag_corners_mm()))
+        img.append(vids[i].corners_px)
+    obj_a, img_a = np.concatenate(obj), np.concatenate(img)
+    drill_from_carm0 = invert(carm_from_drill_horn)
+    rvec0, _ = cv2.Rodrigues(drill_from_carm0[:3, :3])
+    rvec, tvec = cv2.solvePnPRefineLM(obj_a, img_a, camera.camera_matrix, camera.distortion, rvec0.copy(), drill_from_carm0[:3, 3].reshape(3, 1).copy())
+    rot, _ = cv2.Rodrigues(rvec)
+    carm_from_drill = invert(make_transform(rot, tvec.ravel()))
+    proj, _ = cv2.projectPoints(obj_a, rvec, tvec, camera.camera_matrix, camera.distortion)
+    corner_rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_a) ** 2, axis=1))))
+    drill_from_carm = invert(carm_from_drill)
+    fre = {i: float(np.linalg.norm(apply(drill_from_carm, poses[i].position_carm_mm) - vids[i].position_camera_mm)) for i in common}
+    return DrillRegistration(
+        carm_from_drill=carm_from_drill,
+        carm_from_drill_horn=carm_from_drill_horn,
+        fre_mm=fre,
+        used_ids=tuple(used),
+        rejected_ids=tuple(rejected),
+        corner_rms_px=corner_rms,
+    )
+
+
+def _horn(ids, vids, poses):
+    src = np.array([vids[i].position_camera_mm for i in ids])
+    dst = np.array([poses[i].position_carm_mm for i in ids])
+    w = np.array([1.0 / max(np.trace(vids[i].covariance_mm2), 1e-4) for i in ids])
+    try:
+        return absolute_orientation(src, dst, w / w.max())
+    except DegenerateInput as exc:
+        raise MarkersNotFound(f"markers usable for registration are degenerate: {exc}") from None
+
+
+def predicted_axis_error(
+    video: VideoDetections,
+    marker_poses: tuple[MarkerPose, ...],
+    registration: DrillRegistration,
+    axis_drill: Line3D,
+    *,
+    working_point_carm_mm: NDArray[np.float64],
+    fluoro_sigma_mm: float = 0.15,
+    samples: int = 64,
+    seed: int = 0,
+) -> PredictedError:
+    """Monte-Carlo error of the axis from the video covariances and the fluoroscopy marker uncertainty."""
+    rng = np.random.default_rng(seed)
+    vids = video.by_id()
+    poses = {p.marker_id: p for p in marker_poses}
+    ids = list(registration.used_ids)
+    src = np.array([vids[i].position_camera_mm for i in ids])
+    dst = np.array([poses[i].position_carm_mm for i in ids])
+    covs = [vids[i].covariance_mm2 for i in ids]
+    axis_c = axis_drill.transformed(registration.carm_from_drill)
+    s0 = float(np.dot(working_point_carm_mm - axis_c.point_mm, axis_c.direction))
+    ref = axis_c.at(s0)[0]
+    pos, ang = [], []
+    for _ in range(samples):
+        s = src + np.array([rng.multivariate_normal(np.zeros(3), c + 1e-9 * np.eye(3)) for c in covs])
+        d = dst + rng.normal(scale=fluoro_sigma_mm, size=dst.shape)
+        t = absolute_orientation(s, d).target_from_source
+        a = axis_drill.transformed(t)
+        p = a.closest_point(ref)
+        pos.append(np.linalg.norm(p - ref))
+        ang.append(a.angle_deg(axis_c))
+    p95, a95 = float(np.percentile(pos, 95)), float(np.percentile(ang, 95))
+    return PredictedError(position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95)
