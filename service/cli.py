@@ -19,6 +19,8 @@ __all__ = ["main", "build_parser", "CliError"]
 # Modules under drillnav.service that contribute subcommands.
 COMMAND_MODULES: tuple[str, ...] = (
     "cli_markers",
+    "cli_sim",
+    "cli_register",
 )
 
 EXIT_USAGE = 2

@@ -1,0 +1,112 @@
+"""``drillnav register``: the drill axis on the fluoroscopy views from one camera frame and 1+ shots."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drillnav.drivers.fluoro_dicom import read_fluoro
+from drillnav.drivers.image_files import read_image
+from drillnav.registration.errors import MarkersNotFound
+from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.marker_pose import register_markers
+from drillnav.registration.overlay import draw_axis, draw_detections, mask_markers, to_display
+from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
+from drillnav.registration.video_markers import VideoMarkerLocator
+from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
+from drillnav.schemas.markers import read_marker_set
+
+from .outputs import check_output_dir, check_output_path
+
+__all__ = ["register", "run_registration"]
+
+
+def run_registration(args: argparse.Namespace) -> dict:
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    marker_set = read_marker_set(args.markers)
+    camera = read_camera_calibration(args.camera)
+    axis_drill = read_drill_calibration(args.drill)
+    frame = read_image(args.video)
+    images = [img for f in args.fluoro for img in read_fluoro(f)]
+    timings["read_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    video = VideoMarkerLocator(camera=camera, marker_ids=marker_set.ids, tag_size_mm=marker_set.markers[0].tag_size_mm).locate(frame)
+    timings["video_markers_s"] = time.perf_counter() - t
+    if not video.markers:
+        raise MarkersNotFound(f"{args.video}: no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
+
+    t = time.perf_counter()
+    detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1]) for img in images]
+    timings["fluoro_features_s"] = time.perf_counter() - t
+    for img, det in zip(images, detections):
+        if len(det.markers) < 3 and len(images) == 1:
+            raise MarkersNotFound(f"{Path(img.source_file).name}: only {len(det.markers)} marker(s) identified in the single view; at least 3 are needed" + "".join(f"; {r.reason}" for r in det.rejected))
+    seen = {m.marker_id for d in detections for m in d.markers}
+    if not seen & set(marker_set.ids):
+        raise MarkersNotFound(f"none of the marker set's ids {sorted(marker_set.ids)} is identified in the fluoroscopy views")
+
+    t = time.perf_counter()
+    poses = register_markers(detections, [img.view for img in images], marker_set)
+    timings["marker_registration_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    reg = register_video_to_fluoro(video, poses, marker_set, camera)
+    timings["video_to_fluoro_s"] = time.perf_counter() - t
+    axis_c = axis_drill.transformed(reg.carm_from_drill)
+    centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
+    work_point = axis_c.closest_point(centroid)
+    pe = predicted_axis_error(video, poses, reg, axis_drill, working_point_carm_mm=work_point)
+    axis_out = type(axis_c)(point_mm=work_point, direction=axis_c.direction)
+
+    result = {
+        "carm_from_drill": transform_to_json(reg.carm_from_drill),
+        "drill_axis_carm": axis_to_json(axis_out),
+        "views": [{"file": img.source_file, "frame": img.frame_index, "geometry": img.geometry_source, "line_px": [float(v) for v in axis_c.project(img.view.projection_matrix)],
+                   "markers_identified": sorted(m.marker_id for m in det.markers), "rejected": [r.reason for r in det.rejected]}
+                  for img, det in zip(images, detections)],
+        "markers": [{"id": p.marker_id, "position_carm_mm": [float(v) for v in p.position_carm_mm], "fre_mm": reg.fre_mm.get(p.marker_id),
+                     "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged, "rejected": p.marker_id in reg.rejected_ids} for p in poses],
+        "predicted_error": {"position_mm": pe.position_mm, "angle_deg": pe.angle_deg, "cone_half_angle_deg": pe.cone_half_angle_deg, "at": "axis point nearest the markers' centroid"},
+        "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "corner_rms_px": reg.corner_rms_px},
+        "timings_s": timings,
+    }
+    if args.overlays:
+        t = time.perf_counter()
+        out_dir = check_output_dir(args.overlays)
+        for img, det in zip(images, detections):
+            base = mask_markers(img.pixels_log, det) if args.mask_markers else img.pixels_log
+            bgr = draw_axis(draw_detections(to_display(base), det), img.view, axis_c, cone_half_angle_deg=pe.cone_half_angle_deg)
+            cv2.imwrite(str(out_dir / f"{Path(img.source_file).stem}-{img.frame_index}.png"), bgr)
+        timings["overlays_s"] = time.perf_counter() - t
+    return result
+
+
+def _handler(args: argparse.Namespace) -> int:
+    out = check_output_path(args.out, suffixes=(".json",))
+    result = run_registration(args)
+    out.write_text(json.dumps(result, indent=1))
+    a = result["drill_axis_carm"]
+    print(f"registered with markers {[m['id'] for m in result['markers'] if not m['rejected']]}; axis point {np.round(a['point_mm'], 1).tolist()} mm, "
+          f"direction {np.round(a['direction'], 3).tolist()}; predicted error {result['predicted_error']['position_mm']:.2f} mm / {result['predicted_error']['angle_deg']:.2f} deg -> {out}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("register", help="register the drill axis to fluoroscopy from a camera frame and 1+ shots")
+    p.add_argument("--markers", required=True, help="markers.json")
+    p.add_argument("--camera", required=True, help="camera.json")
+    p.add_argument("--drill", required=True, help="drill.json")
+    p.add_argument("--video", required=True, help="camera frame (PNG/JPEG)")
+    p.add_argument("--fluoro", required=True, nargs="+", help="fluoroscopy DICOM file(s); <file>.json beside one overrides its geometry")
+    p.add_argument("--out", required=True, help="result.json")
+    p.add_argument("--overlays", help="folder for overlay PNGs")
+    p.add_argument("--mask-markers", action="store_true", help="mask the markers out of the overlays")
+    p.set_defaults(func=_handler)

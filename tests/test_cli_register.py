@@ -1,0 +1,115 @@
+"""drillnav sim scene -> drillnav register, end to end through real files (DICOM, PNG, JSON)."""
+
+import json
+import shutil
+
+import numpy as np
+import pydicom
+import pytest
+
+from drillnav.drivers.fluoro_dicom import DicomGeometryMissing, DicomUnreadable, read_fluoro
+from drillnav.service.cli import main
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene")
+    assert main(["sim", "scene", "--seed", "11", "--markers", "5", "--views", "inlet,outlet", "--out", str(out)]) == 0
+    return out
+
+
+def args(d, *fluoro, out=None):
+    return ["register", "--markers", str(d / "markers.json"), "--camera", str(d / "camera.json"), "--drill", str(d / "drill.json"),
+            "--video", str(d / "camera.png"), "--fluoro", *map(str, fluoro), "--out", str(out or d / "result.json")]
+
+
+def test_scene_folder_contract(scene_dir):
+    for name in ["camera.png", "camera.json", "drill.json", "markers.json", "plan.json", "truth.json", "fluoro/inlet.dcm", "fluoro/inlet.json"]:
+        assert (scene_dir / name).is_file(), name
+    ds = pydicom.dcmread(str(scene_dir / "fluoro" / "inlet.dcm"))
+    assert ds.Modality == "XA" and float(ds.PositionerSecondaryAngle) == -25.0
+    assert float(ds.DistanceSourceToDetector) == 1164.0 and float(ds.DistanceSourceToPatient) == 624.0
+    assert [float(v) for v in ds.ImagerPixelSpacing] == [0.304, 0.304] and ds.PatientPosition == "HFS"
+    truth = json.loads((scene_dir / "truth.json").read_text())
+    assert {"carm_from_drill", "carm_from_ct", "drill_axis_carm", "corridor_entry_carm_mm", "markers"} <= truth.keys()
+
+
+def test_register_two_views_against_truth(scene_dir, tmp_path):
+    out = tmp_path / "result.json"
+    assert main(args(scene_dir, scene_dir / "fluoro/inlet.dcm", scene_dir / "fluoro/outlet.dcm", out=out) + ["--overlays", str(tmp_path / "ov")]) == 0
+    r = json.loads(out.read_text())
+    t = json.loads((scene_dir / "truth.json").read_text())
+    p, d = np.array(r["drill_axis_carm"]["point_mm"]), np.array(r["drill_axis_carm"]["direction"])
+    e = np.array(t["corridor_entry_carm_mm"])
+    q = p + np.dot(e - p, d) * d
+    assert np.linalg.norm(q - t["drill_axis_carm"]["point_mm"]) < 2.5
+    assert np.degrees(np.arccos(np.clip(d @ t["drill_axis_carm"]["direction"], -1, 1))) < 2.0
+    assert len(r["views"]) == 2 and len(r["markers"]) == 5 and (tmp_path / "ov" / "inlet-0.png").is_file()
+    assert all(m["fre_mm"] < 3 for m in r["markers"])
+
+
+def test_geometry_from_positioner_when_json_absent(scene_dir, tmp_path):
+    shutil.copy(scene_dir / "fluoro/inlet.dcm", tmp_path / "a.dcm")
+    (img,) = read_fluoro(tmp_path / "a.dcm")
+    (ref,) = read_fluoro(scene_dir / "fluoro/inlet.dcm")
+    assert img.geometry_source == "positioner" and ref.geometry_source == "projection-matrix"
+    np.testing.assert_allclose(img.view.projection_matrix, ref.view.projection_matrix, rtol=1e-6, atol=1e-6)
+
+
+def test_missing_geometry_names_the_attribute(scene_dir, tmp_path):
+    ds = pydicom.dcmread(str(scene_dir / "fluoro/inlet.dcm"))
+    del ds.DistanceSourceToPatient
+    ds.save_as(str(tmp_path / "b.dcm"))
+    with pytest.raises(DicomGeometryMissing, match=r"DistanceSourceToPatient \(0018,1111\)"):
+        read_fluoro(tmp_path / "b.dcm")
+
+
+def test_corrupt_dicom_and_wrong_sop_class(scene_dir, tmp_path):
+    (tmp_path / "c.dcm").write_bytes((scene_dir / "fluoro/inlet.dcm").read_bytes()[:700])
+    with pytest.raises(DicomUnreadable, match="c.dcm"):
+        read_fluoro(tmp_path / "c.dcm")
+    (tmp_path / "d.dcm").write_text("not dicom")
+    with pytest.raises(DicomUnreadable, match="not a readable DICOM"):
+        read_fluoro(tmp_path / "d.dcm")
+    ds = pydicom.dcmread(str(scene_dir / "fluoro/inlet.dcm"))
+    ds.SOPClassUID = "1.2.840.10008.5.1.4.1.1.2"  # CT
+    ds.save_as(str(tmp_path / "e.dcm"))
+    with pytest.raises(DicomUnreadable, match="not a fluoroscopy"):
+        read_fluoro(tmp_path / "e.dcm")
+
+
+def test_real_radiograph_without_geometry_is_refused():
+    from pathlib import Path
+
+    real = Path(__file__).resolve().parents[2] / "shared" / "data" / "xray" / "chest-pa-RG1_UNCI.dcm"
+    if not real.is_file():
+        pytest.skip("../shared/data/xray is not present on this machine")
+    with pytest.raises(DicomGeometryMissing, match="PositionerPrimaryAngle"):
+        read_fluoro(real)
+
+
+def test_register_bad_inputs_one_line(scene_dir, tmp_path, capsys):
+    blank = tmp_path / "blank.png"
+    import cv2
+
+    cv2.imwrite(str(blank), np.full((720, 1280), 120, np.uint8))
+    a = args(scene_dir, scene_dir / "fluoro/inlet.dcm")
+    a[a.index("--video") + 1] = str(blank)
+    assert main(a) == 1
+    assert "no marker of the marker set" in capsys.readouterr().err
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG garbage")
+    a[a.index("--video") + 1] = str(tmp_path / "bad.png")
+    assert main(a) == 1
+    assert "not a readable image" in capsys.readouterr().err
+    # A marker set whose ids are not in view.
+    doc = json.loads((scene_dir / "markers.json").read_text())
+    truth_ids = {m["id"] for m in doc["markers"]}
+    from drillnav.registration.markers import default_marker_set
+    from drillnav.schemas.markers import write_marker_set
+
+    write_marker_set(tmp_path / "other.json", default_marker_set().subset([i for i in range(48) if i not in truth_ids][:5]))
+    b = args(scene_dir, scene_dir / "fluoro/inlet.dcm")
+    b[b.index("--markers") + 1] = str(tmp_path / "other.json")
+    assert main(b) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "marker" in err
