@@ -21,6 +21,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "cli_markers",
     "cli_sim",
     "cli_register",
+    "cli_serve",
+    "cli_stream",
 )
 
 EXIT_USAGE = 2

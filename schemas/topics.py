@@ -1,0 +1,62 @@
+"""Key expressions of every drillnav stream, and the schema each carries.
+
+All keys live under a prefix (default ``drillnav``). Camera and overlay images
+use Foxglove's well-known ``foxglove.CompressedImage`` (protobuf) so a recording
+opens in Foxglove as it is; drillnav's own messages are JSON with a JSON Schema.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+__all__ = ["Encoding", "Topic", "TOPICS", "key", "topic_for_key", "ALIASES"]
+
+
+class Encoding(str, Enum):
+    PROTOBUF = "protobuf"
+    JSON = "json"
+
+
+@dataclass(frozen=True)
+class Topic:
+    suffix: str          # after the prefix; may contain one '*' for a view name
+    schema_name: str
+    encoding: Encoding
+    description: str
+
+
+TOPICS: dict[str, Topic] = {
+    "camera_image": Topic("camera/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "drill-camera frames, JPEG, stamped at capture"),
+    "camera_markers": Topic("camera/markers", "drillnav.VideoMarkers", Encoding.JSON, "video marker detections per frame (ids, corners, X_D)"),
+    "fluoro_shot": Topic("fluoro/shot", "drillnav.FluoroShot", Encoding.JSON, "a new fluoroscopy image with its projection matrix (16-bit PNG of log attenuation)"),
+    "fluoro_image": Topic("fluoro/*/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "fluoroscopy views for display, PNG"),
+    "fluoro_markers": Topic("fluoro/markers", "drillnav.FluoroMarkers", Encoding.JSON, "marker poses in C from the last registration"),
+    "axis_carm": Topic("axis/carm", "drillnav.DrillAxis", Encoding.JSON, "the drill axis in frame C with its predicted error, one per camera frame"),
+    "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz"),
+    "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
+    "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
+}
+
+ALIASES = {"drill-axis": "axis_carm", "status": "status", "events": "events", "markers": "camera_markers", "shots": "fluoro_shot"}
+
+
+def key(prefix: str, name: str, view: str | None = None) -> str:
+    suffix = TOPICS[name].suffix
+    if "*" in suffix:
+        if not view:
+            raise ValueError(f"topic {name} needs a view name")
+        suffix = suffix.replace("*", view)
+    return f"{prefix}/{suffix}"
+
+
+def topic_for_key(prefix: str, key_expr: str) -> Topic | None:
+    """The topic a concrete key belongs to (None for keys drillnav does not publish)."""
+    if not key_expr.startswith(prefix + "/"):
+        return None
+    parts = key_expr[len(prefix) + 1 :].split("/")
+    for t in TOPICS.values():
+        pat = t.suffix.split("/")
+        if len(pat) == len(parts) and all(p == "*" or p == q for p, q in zip(pat, parts)):
+            return t
+    return None

@@ -1,0 +1,167 @@
+"""The daemon: bus, camera, C-arm intake, registration node, recorder and REST API, stopped gracefully."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+
+from drillnav.drivers.fluoro_dicom import read_fluoro
+from drillnav.drivers.folder_watch import FolderWatcher
+from drillnav.registration.errors import DrillnavError
+from drillnav.registration.markers import default_marker_set
+from drillnav.registration.overlay import to_display
+from drillnav.schemas import messages as msg
+from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+from drillnav.schemas.markers import read_marker_set
+from drillnav.schemas.topics import TOPICS, key
+
+from .api import create_app
+from .bus import open_session
+from .node import RegistrationNode
+from .recorder import Recorder
+from .settings import Settings, SettingsError
+
+__all__ = ["Daemon"]
+
+
+class Daemon:
+    """Owns every running part; ``start()`` then ``stop()`` (or ``run(stop_event)``)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.token = settings.api.token
+        self.prefix = settings.zenoh.prefix
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._recorders: dict[str, Recorder] = {}
+        self._finished: dict[str, list[str]] = {}
+        self.errors: list[str] = []
+        self.carm = None
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def start(self) -> None:
+        s = self.settings
+        self.session = open_session(mode=s.zenoh.mode, listen=s.zenoh.listen, connect=s.zenoh.connect, multicast_scouting=s.zenoh.multicast_scouting)
+        s.dicom.watch_folder.mkdir(parents=True, exist_ok=True)
+        if s.twin:
+            from drillnav.drivers.sim.devices import TwinCArm, TwinDrillCamera
+            from drillnav.drivers.sim.scene import make_scene
+
+            scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
+            marker_set, camera, axis = scene.marker_set, scene.calibrated_camera, scene.calibrated_axis_drill
+            self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed)
+            self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder, seed=s.twin_scene.seed)
+        else:
+            from drillnav.drivers.webcam import Webcam
+
+            if s.camera.calibration is None or s.camera.drill_calibration is None:
+                raise SettingsError("camera.calibration and camera.drill_calibration must name camera.json and drill.json (run the calibrations first)")
+            marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
+            camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
+            self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps)
+        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis)
+        self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
+        if s.recording.record_on_start:
+            self.start_recording("session")
+        self._spawn(self._camera_loop, "camera")
+        self._spawn(self._dicom_loop, "dicom")
+        self._server = uvicorn.Server(uvicorn.Config(create_app(state=self), host=s.api.host, port=s.api.port, log_level="warning"))
+        self._spawn(self._server.run, "api")
+        if self.carm is not None:
+            for view in self.carm.scene.views:
+                self.carm.shoot(view)
+
+    def _spawn(self, target, name: str) -> None:
+        t = threading.Thread(target=target, name=name, daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if hasattr(self, "_server"):
+            self._server.should_exit = True
+        for t in self._threads:
+            t.join(timeout=5)
+        if hasattr(self, "node"):
+            self.node.close()
+        for name in list(self._recorders):
+            self.stop_recording(name)
+        if hasattr(self, "session"):
+            self.session.close()
+
+    def run(self, stop_event: threading.Event) -> None:
+        self.start()
+        try:
+            stop_event.wait()
+        finally:
+            self.stop()
+
+    # -- loops -----------------------------------------------------------------------------
+    def _camera_loop(self) -> None:
+        pub = self.session.declare_publisher(key(self.prefix, "camera_image"))
+        try:
+            with self.camera_device as cam:
+                while not self._stop.is_set():
+                    frame = cam.read()
+                    pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
+        except DrillnavError as exc:
+            self.errors.append(str(exc))
+            self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "error", "message": str(exc)}))
+
+    def _dicom_loop(self) -> None:
+        while not self._stop.is_set():
+            for path in self.watcher.wait(0.5):
+                try:
+                    images = read_fluoro(path)
+                except DrillnavError as exc:
+                    self.errors.append(str(exc))
+                    self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "error", "message": f"fluoroscopy refused: {exc}"}))
+                    continue
+                for img in images:
+                    name = Path(img.source_file).stem.split("-")[0]
+                    stamp = time.time_ns()
+                    self.session.put(key(self.prefix, "fluoro_shot"), msg.fluoro_shot(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file))
+                    self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+
+    # -- ServiceState for the API ------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        st = self.node.status()
+        st.update({"twin": self.settings.twin, "recordings": list(self._recorders), "device_errors": self.errors[-5:],
+                   "topics": {n: key(self.prefix, n, "<view>") if "*" in t.suffix else key(self.prefix, n) for n, t in TOPICS.items()}})
+        return st
+
+    def registration(self) -> dict[str, Any] | None:
+        return self.node.last_axis
+
+    def request_registration(self) -> None:
+        self.node.request_registration()
+
+    def start_recording(self, name: str) -> list[str]:
+        if name in self._recorders:
+            raise KeyError(f"recording '{name}' is already running")
+        rec = Recorder(session=self.session, prefix=self.prefix, folder=self.settings.recording.folder, name=name, rotate_bytes=self.settings.recording.rotate_mb * 1024 * 1024)
+        self._recorders[name] = rec
+        return [str(p) for p in rec.files]
+
+    def stop_recording(self, name: str) -> list[str]:
+        if name not in self._recorders:
+            raise KeyError(f"no running recording named '{name}'")
+        files = [str(p) for p in self._recorders.pop(name).close()]
+        self._finished[name] = files
+        return files
+
+    def recordings(self) -> dict[str, list[str]]:
+        out = dict(self._finished)
+        out.update({n: [str(p) for p in r.files] for n, r in self._recorders.items()})
+        return out
+
+    def shoot(self, view: str) -> str:
+        if self.carm is None:
+            raise RuntimeError("shots on request exist only on the digital twin; a real C-arm sends its images itself")
+        return str(self.carm.shoot(view))
+
+

@@ -1,0 +1,96 @@
+"""The daemon's settings: one object, from a TOML file and DRILLNAV_* environment variables.
+
+Environment wins over the file (``DRILLNAV_API__PORT=8081``). Unknown keys and
+invalid values are refused with the field named: a medical device must not
+silently replace a bad setting with a default.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from drillnav.registration.errors import DrillnavError
+
+__all__ = ["Settings", "SettingsError", "load_settings"]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ZenohSettings(_Section):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+    prefix: str = "drillnav"
+
+
+class ApiSettings(_Section):
+    host: str = "127.0.0.1"
+    port: int = Field(8080, ge=1, le=65535)
+    token: str = Field("change-me", min_length=8, description="bearer token for every changing endpoint")
+
+
+class CameraSettings(_Section):
+    device: str = "/dev/video0"
+    width: int = 1280
+    height: int = 720
+    fps: float = Field(30.0, gt=0, le=120)
+    calibration: Path | None = None
+    drill_calibration: Path | None = None
+
+
+class DicomSettings(_Section):
+    watch_folder: Path = Path("var/incoming")
+
+
+class RecordingSettings(_Section):
+    folder: Path = Path("var/recordings")
+    record_on_start: bool = True
+    rotate_mb: int = Field(512, ge=1)
+
+
+class TwinSettings(_Section):
+    seed: int = 0
+    markers: int = Field(5, ge=3, le=7)
+    views: str = "inlet,outlet"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="DRILLNAV_", env_nested_delimiter="__", extra="forbid")
+    twin: bool = False
+    markers_file: Path | None = None
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    api: ApiSettings = Field(default_factory=ApiSettings)
+    camera: CameraSettings = Field(default_factory=CameraSettings)
+    dicom: DicomSettings = Field(default_factory=DicomSettings)
+    recording: RecordingSettings = Field(default_factory=RecordingSettings)
+    twin_scene: TwinSettings = Field(default_factory=TwinSettings)
+
+
+class SettingsError(DrillnavError):
+    """A configuration that cannot be used; the message names the field."""
+
+
+def load_settings(config: Path | None = None, **overrides) -> Settings:
+    data: dict = {}
+    if config is not None:
+        try:
+            data = tomllib.loads(Path(config).read_text())
+        except FileNotFoundError:
+            raise SettingsError(f"config file {config} does not exist") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SettingsError(f"{config}: not valid TOML ({exc})") from None
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return Settings(**data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise SettingsError(f"invalid setting '{where}': {first['msg']} ({len(exc.errors())} problem(s) in all)") from None
