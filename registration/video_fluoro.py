@@ -126,10 +126,20 @@ def predicted_axis_error(
     *,
     working_point_carm_mm: NDArray[np.float64],
     fluoro_sigma_mm: float = 0.15,
+    axis_sigma_mm: float = 0.15,
+    axis_sigma_deg: float = 0.12,
+    focal_rel_sigma: float = 0.002,
     samples: int = 64,
     seed: int = 0,
 ) -> PredictedError:
-    """Monte-Carlo error of the axis from the video covariances and the fluoroscopy marker uncertainty."""
+    """Monte-Carlo error of the axis from every input's uncertainty.
+
+    Draws the video X_D from their covariances with a common focal-length scale
+    error (which scales depth for all markers alike), the fluoroscopy X_C with
+    ``fluoro_sigma_mm``, and the calibrated drill axis with its calibration
+    uncertainty; the 95th percentiles of the axis's displacement at the working
+    point and of its angle are the prediction.
+    """
     rng = np.random.default_rng(seed)
     vids = video.by_id()
     poses = {p.marker_id: p for p in marker_poses}
@@ -143,9 +153,14 @@ def predicted_axis_error(
     pos, ang = [], []
     for _ in range(samples):
         s = src + np.array([rng.multivariate_normal(np.zeros(3), c + 1e-9 * np.eye(3)) for c in covs])
+        s = s * (1.0 + rng.normal(scale=focal_rel_sigma))
         d = dst + rng.normal(scale=fluoro_sigma_mm, size=dst.shape)
         t = absolute_orientation(s, d).target_from_source
-        a = axis_drill.transformed(t)
+        tilt = np.radians(axis_sigma_deg) * rng.normal(size=3)
+        k = np.linalg.norm(tilt)
+        direction = axis_drill.direction if k == 0 else (np.cos(k) * axis_drill.direction + np.sin(k) * np.cross(tilt / k, axis_drill.direction))
+        perturbed = Line3D(point_mm=axis_drill.point_mm + rng.normal(scale=axis_sigma_mm, size=3), direction=direction)
+        a = perturbed.transformed(t)
         p = a.closest_point(ref)
         pos.append(np.linalg.norm(p - ref))
         ang.append(a.angle_deg(axis_c))

@@ -1,0 +1,64 @@
+"""Runtime of the fluoroscopy path, beside the reference's Table 4.
+
+Reference: fluoroscopy feature extraction 13.1 s; marker localisation (3D-2D) 139 s (1 view) / 175 s (2 views);
+video-to-fluoro registration 1.5 ms per frame; overlay 40 ms per frame.
+Run: .venv/bin/python benchmarks/fluoro_registration.py
+"""
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _report import figure, report  # noqa: E402
+
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.marker_pose import register_markers
+from drillnav.registration.overlay import draw_axis, draw_detections, to_display
+from drillnav.registration.video_fluoro import register_video_to_fluoro
+from drillnav.registration.video_markers import VideoMarkerLocator
+
+
+def main() -> None:
+    feat, reg1, reg2, v2f, ovl = [], [], [], [], []
+    for seed in range(5):
+        scene = make_scene(seed=200 + seed)
+        names = list(scene.views)
+        dets = []
+        for n in names:
+            t = time.perf_counter()
+            dets.append(detect_markers(scene.fluoro_log[n], scene.marker_set))
+            feat.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        register_markers(dets[:1], [scene.views[names[0]]], scene.marker_set)
+        reg1.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        poses = register_markers(dets, [scene.views[n] for n in names], scene.marker_set)
+        reg2.append(time.perf_counter() - t)
+        video = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids).locate(scene.camera_image)
+        for _ in range(20):
+            t = time.perf_counter()
+            reg = register_video_to_fluoro(video, poses, scene.marker_set, scene.calibrated_camera)
+            v2f.append(time.perf_counter() - t)
+        axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
+        base = to_display(scene.fluoro_log[names[0]])
+        for _ in range(10):
+            t = time.perf_counter()
+            draw_axis(draw_detections(base, dets[0]), scene.views[names[0]], axis, cone_half_angle_deg=1.0)
+            ovl.append(time.perf_counter() - t)
+    total2 = 2 * np.median(feat) + np.median(reg2)
+    report("fluoro_registration", [
+        figure("feature extraction per 976x976 view", float(np.median(feat)), "s", 13.1),
+        figure("marker registration 5 markers 1 view", float(np.median(reg1)), "s", 139.0),
+        figure("marker registration 5 markers 2 views", float(np.median(reg2)), "s", 175.0),
+        figure("shot to registration, 2 views (extraction + registration)", float(total2), "s", 175.0 + 2 * 13.1),
+        figure("video-to-fluoro per frame", float(np.median(v2f)) * 1e3, "ms", 1.5),
+        figure("overlay per frame", float(np.median(ovl)) * 1e3, "ms", 40.0),
+    ], note="marker registration is point-based (BB correspondences, joint LM over views), not the reference's GI/CMA-ES")
+
+
+if __name__ == "__main__":
+    main()

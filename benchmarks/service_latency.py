@@ -1,0 +1,85 @@
+"""The daemon on the twin: frame-capture-stamp to published-axis latency, drops, CPU, memory, recorder throughput.
+
+Reference: 96.2 ms per frame (10 frames/s) for the video loop (Vagdargi et al. 2021, Table 4);
+issue bar: p99 <= 40 ms at 30 frames/s with no dropped frames.
+Run: .venv/bin/python benchmarks/service_latency.py [--seconds 60]
+"""
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _report import figure, report  # noqa: E402
+
+from drillnav.schemas import messages as msg
+from drillnav.schemas.topics import key
+from drillnav.service.bus import open_session
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def cpu_s(pid: int) -> float:
+    f = Path(f"/proc/{pid}/stat").read_text().split()
+    return (int(f[13]) + int(f[14])) / os.sysconf("SC_CLK_TCK")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=60.0)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        ep = "tcp/127.0.0.1:17490"
+        (d / "c.toml").write_text(f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18090\n[dicom]\nwatch_folder = "{d / "in"}"\n[recording]\nfolder = "{d / "rec"}"\n')
+        proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(d / "c.toml")], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+        lat, rss = [], []
+        try:
+            with open_session(connect=[ep]) as s:
+                s.declare_subscriber(key("drillnav", "axis_carm"), lambda smp: lat.append(time.time_ns() - msg.decode_json(smp.payload.to_bytes())["source_frame_stamp_ns"]))
+                t0 = time.monotonic()
+                while not lat and time.monotonic() - t0 < 120:
+                    time.sleep(0.2)
+                lat.clear()
+                status0 = httpx.get("http://127.0.0.1:18090/status", timeout=5).json()
+                cpu0, t_start = cpu_s(proc.pid), time.monotonic()
+                while time.monotonic() - t_start < args.seconds:
+                    time.sleep(1.0)
+                    rss.append(rss_mb(proc.pid))
+                cpu1, t_end = cpu_s(proc.pid), time.monotonic()
+                status1 = httpx.get("http://127.0.0.1:18090/status", timeout=5).json()
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+        rec_bytes = sum(p.stat().st_size for p in (d / "rec").glob("*.mcap"))
+    lat_ms = np.array(lat) / 1e6
+    frames = status1["frames_received"] - status0["frames_received"]
+    dropped = status1["frames_dropped"] - status0["frames_dropped"]
+    report("service_latency", [
+        figure("frame-to-axis latency p50", float(np.percentile(lat_ms, 50)), "ms", 96.2),
+        figure("frame-to-axis latency p99", float(np.percentile(lat_ms, 99)), "ms", 96.2),
+        figure("axis rate", len(lat_ms) / args.seconds, "Hz", 10.0, lower_is_better=False),
+        figure("frames dropped", float(dropped), "n", None),
+        figure("frames received", float(frames), "n", None),
+        figure("daemon CPU", (cpu1 - cpu0) / (t_end - t_start) * 100, "%", None),
+        figure("daemon RSS start", rss[0], "MB", None),
+        figure("daemon RSS end", rss[-1], "MB", None),
+        figure("recorder throughput", rec_bytes / 1e6 / args.seconds, "MB/s", None),
+    ], seconds=args.seconds, note="end-to-end through zenoh on loopback, latency measured by a separate subscriber; 2-core machine")
+
+
+if __name__ == "__main__":
+    main()
