@@ -21,6 +21,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "cli_markers",
     "cli_sim",
     "cli_register",
+    "cli_calibrate",
     "cli_serve",
     "cli_stream",
 )

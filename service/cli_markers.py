@@ -94,3 +94,6 @@ def register(subparsers) -> None:
     s.add_argument("--ids", required=True)
     s.add_argument("--out", required=True)
     s.set_defaults(func=_sheet)
+    from .cli_detect import add_detect
+
+    add_detect(sub)

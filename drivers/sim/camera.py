@@ -119,3 +119,65 @@ def render_markers(
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
     img += rng.normal(scale=noise_sigma, size=img.shape).astype(np.float32)
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+_RAYS: dict[tuple, NDArray[np.float64]] = {}
+
+
+def _full_rays(camera: PinholeCamera, s: int) -> NDArray[np.float64]:
+    """Rays through every sub-pixel of the camera (cached: undistorting a full frame is the slow part)."""
+    k = (camera.width, camera.height, camera.camera_matrix.tobytes(), camera.distortion.tobytes(), s)
+    if k not in _RAYS:
+        offs = (np.arange(s) + 0.5) / s - 0.5
+        uu, vv = np.meshgrid((np.arange(camera.width)[:, None] + offs).reshape(-1), (np.arange(camera.height)[:, None] + offs).reshape(-1))
+        _RAYS.clear()
+        _RAYS[k] = camera.backproject(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    return _RAYS[k]
+
+
+def render_plane(
+    *,
+    camera: PinholeCamera,
+    camera_from_plane: NDArray[np.float64],
+    texture: NDArray[np.uint8],
+    size_mm: tuple[float, float],
+    rng: np.random.Generator,
+    noise_sigma: float = 1.5,
+    blur_sigma_px: float = 0.6,
+    supersample: int = 2,
+) -> NDArray[np.uint8]:
+    """A flat textured board (calibration target, jig) seen through the TRUE lens.
+
+    The board's x runs along texture columns and y down its rows, origin at the
+    texture's top-left corner, ``size_mm`` = (width, height).
+    """
+    h, w = camera.height, camera.width
+    s = supersample
+    offs = (np.arange(s) + 0.5) / s - 0.5
+    u = (np.arange(w)[:, None] + offs).reshape(-1)
+    v = (np.arange(h)[:, None] + offs).reshape(-1)
+    rays = _full_rays(camera, s)
+    plane_from_camera = invert(camera_from_plane)
+    o = plane_from_camera[:3, 3]
+    d = rays @ plane_from_camera[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -o[2] / d[:, 2]
+    hit = o + lam[:, None] * d
+    th, tw = texture.shape
+    tu = (hit[:, 0] / size_mm[0] * tw - 0.5).astype(np.float32).reshape(len(v), len(u))
+    tv = (hit[:, 1] / size_mm[1] * th - 0.5).astype(np.float32).reshape(len(v), len(u))
+    tu[~(lam > 0).reshape(tu.shape)] = -10
+    img = cv2.remap(texture.astype(np.float32), tu, tv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=90.0)
+    img = img.reshape(h, s, w, s).mean(axis=(1, 3))
+    img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px) + rng.normal(scale=noise_sigma, size=(h, w))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def checkerboard_texture(cols: int, rows: int, *, px_per_square: int = 40, margin_squares: int = 1) -> NDArray[np.uint8]:
+    """A checkerboard with ``cols`` x ``rows`` inner corners and a white margin, as a texture."""
+    nx, ny = cols + 1 + 2 * margin_squares, rows + 1 + 2 * margin_squares
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    board = np.where((xx + yy) % 2 == 0, 30, 225).astype(np.uint8)
+    board[:margin_squares], board[-margin_squares:] = 225, 225
+    board[:, :margin_squares], board[:, -margin_squares:] = 225, 225
+    return cv2.resize(board, (nx * px_per_square, ny * px_per_square), interpolation=cv2.INTER_NEAREST)

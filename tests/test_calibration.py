@@ -1,0 +1,146 @@
+"""Camera and drill-axis calibration on twin images with known truth and on real photographs."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from drillnav.drivers.sim.camera import checkerboard_texture, render_plane
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA as AXIS
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.camera_calibration import calibrate_camera, detect_board, parse_board
+from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_board, jig_pose, jig_size_mm
+from drillnav.registration.errors import DegenerateInput
+from drillnav.registration.transforms import make_transform
+from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+from drillnav.service.cli import main
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+TRUE = PinholeCamera.from_fov(width=1280, height=720, horizontal_fov_deg=76, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
+
+
+def board_views(n, *, tilt_deg=30.0, seed=0):
+    rng = np.random.default_rng(seed)
+    tex = checkerboard_texture(9, 6)
+    size = (12 * 25.0, 9 * 25.0)  # 9x6 inner corners + 1 + a white square each side
+    views = []
+    for _ in range(n):
+        r = Rotation.from_euler("xyz", [rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-20, 20)], degrees=True).as_matrix()
+        centre = np.array([rng.uniform(-40, 40), rng.uniform(-25, 25), rng.uniform(380, 480)])
+        t = centre - r @ np.array([size[0] / 2, size[1] / 2, 0])
+        views.append(render_plane(camera=TRUE, camera_from_plane=make_transform(r, t), texture=tex, size_mm=size, rng=rng))
+    return views
+
+
+@pytest.fixture(scope="module")
+def twin_views():
+    return board_views(15)
+
+
+def test_twin_intrinsics_recovered(twin_views):
+    cal = calibrate_camera(twin_views, parse_board("checkerboard:9x6:25mm"))
+    fx, fy = cal.camera.focal_px
+    assert abs(fx / TRUE.focal_px[0] - 1) < 0.005 and abs(fy / TRUE.focal_px[1] - 1) < 0.005
+    assert np.hypot(*(np.subtract(cal.camera.principal_point_px, TRUE.principal_point_px))) < 2.0
+    assert cal.rms_px < 0.5
+
+
+def test_fronto_parallel_set_refused():
+    with pytest.raises(DegenerateInput, match="fronto-parallel"):
+        calibrate_camera(board_views(4, tilt_deg=0.5, seed=3), parse_board("checkerboard:9x6:25mm"))
+
+
+def test_board_spec_errors():
+    with pytest.raises(ValueError, match="bad board"):
+        parse_board("checkerboard:9by6")
+
+
+@pytest.mark.skipif(not (DATA / "chessboard-right").is_dir(), reason="../shared/data/chessboard-right is not present")
+def test_real_chessboard_agrees_with_opencv(tmp_path):
+    paths = sorted((DATA / "chessboard-right").glob("*.jpg"))
+    out = tmp_path / "camera.json"
+    assert main(["calibrate", "camera", *map(str, paths), "--board", "checkerboard:9x6:25mm", "--out", str(out)]) == 0
+    ours = read_camera_calibration(out)
+    # OpenCV's own calibration of the same photographs, straight from its corner finder.
+    obj, img = [], []
+    for p in paths:
+        g = cv2.imread(str(p), 0)
+        ok, c = cv2.findChessboardCorners(g, (9, 6))
+        assert ok
+        c = cv2.cornerSubPix(g, c, (11, 11), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3))
+        obj.append(parse_board("checkerboard:9x6:25mm").object_points().astype(np.float32))
+        img.append(c)
+    _, k, _, _, _ = cv2.calibrateCamera(obj, img, (640, 480), None, None)
+    np.testing.assert_allclose(ours.camera_matrix[[0, 1, 0, 1], [0, 1, 2, 2]], k[[0, 1, 0, 1], [0, 1, 2, 2]], rtol=0.01)
+
+
+@pytest.mark.skipif(not (DATA / "aruco").is_dir(), reason="../shared/data/aruco is not present")
+def test_real_charuco_photo(tmp_path):
+    img = cv2.imread(str(DATA / "aruco" / "choriginal.jpg"), 0)
+    found = detect_board(img, parse_board("charuco:5x7:40mm:30mm"))
+    assert found is not None and len(found[0]) >= 20
+    out = tmp_path / "det.json"
+    assert main(["markers", "detect", str(DATA / "aruco" / "choriginal.jpg"), "--camera", str(DATA / "aruco" / "tutorial_camera_charuco.yml"), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert sorted(m["id"] for m in doc["markers"]) == list(range(17))
+    assert all("camera_from_tag" in m and np.asarray(m["camera_from_tag"])[2, 3] > 0 for m in doc["markers"])
+
+
+def jig_frames(n=8, span=120.0, seed=0):
+    rng = np.random.default_rng(seed)
+    s = jig_size_mm()
+    tex = jig_board().generateImage((800, 800), marginSize=0)
+    c = AXIS.at([150.0])[0]
+    z = AXIS.direction
+    x = np.cross([0, 1, 0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    base = make_transform(np.stack([x, y, z], 1) @ Rotation.from_euler("x", 20, degrees=True).as_matrix(), c - s / 2 * x - s / 2 * y + 30 * x)
+    frames = []
+    for th in np.linspace(-span / 2, span / 2, n):
+        r = Rotation.from_rotvec(np.radians(th) * z).as_matrix()
+        frames.append(render_plane(camera=TRUE, camera_from_plane=make_transform(r, c - r @ c) @ base, texture=tex, size_mm=(s, s), rng=rng))
+    return frames
+
+
+def test_drill_axis_both_methods():
+    poses = [jig_pose(f, TRUE) for f in jig_frames()]
+    screw = fit_axis_screw(poses)
+    assert screw.axis.angle_deg(AXIS) < 0.3 and AXIS.distance_to_line(screw.axis) < 0.3
+    s = jig_size_mm()
+    cyl = fit_axis_cylinder(poses, np.array([[0, 0, 0], [s, 0, 0], [s, s, 0], [0, s, 0], [s / 2, s / 2, 0]], float))
+    assert cyl.axis.angle_deg(AXIS) < 1.0 and AXIS.distance_to_line(cyl.axis) < 1.0
+
+
+def test_drill_axis_refusals(tmp_path):
+    poses = [jig_pose(f, TRUE) for f in jig_frames(4, span=0.0)]
+    with pytest.raises(DegenerateInput, match="static"):
+        fit_axis_screw(poses)
+    poses = [jig_pose(f, TRUE) for f in jig_frames(4, span=10.0)]
+    with pytest.raises(DegenerateInput, match="too small"):
+        fit_axis_screw(poses)
+    bad = [jig_pose(f, TRUE) for f in jig_frames(6)]
+    bad[3] = make_transform(Rotation.from_euler("y", 40, degrees=True).as_matrix(), [0, 0, 0]) @ bad[3]
+    with pytest.raises(DegenerateInput, match="disagree"):
+        fit_axis_screw(bad)
+
+
+def test_drill_axis_cli(tmp_path, capsys):
+    from drillnav.schemas.calibration import write_camera_calibration
+
+    cam = tmp_path / "camera.json"
+    write_camera_calibration(cam, TRUE, rms_px=0.2, per_view_errors_px=[], label="twin")
+    paths = []
+    for i, f in enumerate(jig_frames(6)):
+        paths.append(tmp_path / f"f{i}.png")
+        cv2.imwrite(str(paths[-1]), f)
+    out = tmp_path / "drill.json"
+    assert main(["calibrate", "drill-axis", *map(str, paths), "--camera", str(cam), "--out", str(out)]) == 0
+    axis = read_drill_calibration(out)
+    assert axis.angle_deg(AXIS) < 0.3
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n junk")
+    assert main(["calibrate", "drill-axis", str(tmp_path / "corrupt.png"), "--camera", str(cam), "--out", str(out)]) == 1
+    assert "not a readable image" in capsys.readouterr().err
