@@ -26,6 +26,7 @@ def _serve(args: argparse.Namespace) -> int:
         f"drillnav: running.\n"
         f"  REST API   http://{settings.api.host}:{settings.api.port}/docs  (status: /status, axis: /registration)\n"
         f"  zenoh      {settings.zenoh.mode} listening on {', '.join(settings.zenoh.listen) or '(none)'}\n"
+        f"  DICOM      C-STORE to AE {settings.dicom.ae_title} at {settings.dicom.scp_host}:{settings.dicom.scp_port}, or files into {settings.dicom.watch_folder}/\n"
         f"  drill axis {p}/axis/carm    camera {p}/camera/image    overlays {p}/overlay/<view>    status {p}/registration/status\n"
         f"  listen     .venv/bin/drillnav listen drill-axis --connect {settings.zenoh.listen[0] if settings.zenoh.listen else ''}\n"
         f"  recording  {settings.recording.folder}/  (MCAP, opens in Foxglove)\n"

@@ -54,7 +54,8 @@ class Daemon:
             scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
             marker_set, camera, axis = scene.marker_set, scene.calibrated_camera, scene.calibrated_axis_drill
             self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed)
-            self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder, seed=s.twin_scene.seed)
+            send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
+            self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
         else:
             from drillnav.drivers.webcam import Webcam
 
@@ -65,6 +66,12 @@ class Daemon:
             self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps)
         self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis)
         self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
+        self.scp = None
+        if s.dicom.scp_enabled:
+            from drillnav.drivers.dicom_scp import StoreScp
+
+            # Received images land in the watched folder, fsynced before they are acknowledged.
+            self.scp = StoreScp(ae_title=s.dicom.ae_title, port=s.dicom.scp_port, host=s.dicom.scp_host, storage_dir=s.dicom.watch_folder, allowed_calling_aes=s.dicom.allowed_calling_aes).__enter__()
         if s.recording.record_on_start:
             self.start_recording("session")
         self._spawn(self._camera_loop, "camera")
@@ -86,6 +93,8 @@ class Daemon:
             self._server.should_exit = True
         for t in self._threads:
             t.join(timeout=5)
+        if getattr(self, "scp", None) is not None:
+            self.scp.__exit__(None, None, None)
         if hasattr(self, "node"):
             self.node.close()
         for name in list(self._recorders):

@@ -48,6 +48,11 @@ class CameraSettings(_Section):
 
 class DicomSettings(_Section):
     watch_folder: Path = Path("var/incoming")
+    scp_enabled: bool = True
+    scp_host: str = "127.0.0.1"
+    scp_port: int = Field(11112, ge=1, le=65535)
+    ae_title: str = Field("DRILLNAV", min_length=1, max_length=16)
+    allowed_calling_aes: list[str] | None = None  # None: any calling AE
 
 
 class RecordingSettings(_Section):

@@ -217,7 +217,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     cfg = tmp_path / "drillnav.toml"
     cfg.write_text(
         f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18082\ntoken = "test-token-1"\n'
-        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\n'
+        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = 11140\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\n'
     )
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -233,6 +233,16 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert a["frame_id"] == "carm" and abs(np.linalg.norm(a["direction"]) - 1) < 1e-6 and a["predicted_error"]["position_mm"] > 0
         status = httpx.get("http://127.0.0.1:18082/status", timeout=5).json()
         assert status["state"] == "registered" and status["axes_published"] >= 10
+        # A shot sent by C-STORE from this (separate) process leads to a new registration within 5 s.
+        from drillnav.drivers.dicom_scp import send_files
+
+        before = status["registration_id"]
+        shot = sorted((tmp_path / "in").glob("*.dcm"))[0]
+        t0 = time.monotonic()
+        assert send_files(host="127.0.0.1", port=11140, called_ae="DRILLNAV", paths=[shot]) == [0]
+        while time.monotonic() - t0 < 5.0 and httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] == before:
+            time.sleep(0.1)
+        assert httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] > before
         # A corrupt DICOM dropped in the watched folder is refused with an event, and nothing stops.
         (tmp_path / "in" / "broken.dcm").write_bytes(b"garbage" * 10)
         time.sleep(2.0)

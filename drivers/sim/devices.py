@@ -76,8 +76,9 @@ class TwinDrillCamera:
 class TwinCArm:
     """Takes a shot of a named view and writes it as XA DICOM (+ projection JSON) into ``folder``."""
 
-    def __init__(self, *, scene: Scene, folder: Path, seed: int = 0) -> None:
-        self.scene, self.folder = scene, Path(folder)
+    def __init__(self, *, scene: Scene, folder: Path, seed: int = 0, send_to: tuple[str, int, str] | None = None) -> None:
+        """``send_to`` = (host, port, called AE): send each shot by DICOM C-STORE instead of dropping it in ``folder``."""
+        self.scene, self.folder, self.send_to = scene, Path(folder), send_to
         self.folder.mkdir(parents=True, exist_ok=True)
         self._rng = np.random.default_rng([seed, 7])
         self._n = 0
@@ -93,6 +94,17 @@ class TwinCArm:
                  source_to_isocenter_mm=PAPER_CARM["source_to_isocenter_mm"], pixel_spacing_mm=PAPER_CARM["pixel_spacing_mm"],
                  study_uid="1.2.826.0.1.3680043.8.498.1", series_uid="1.2.826.0.1.3680043.8.498.2", instance_number=self._n)
         final = self.folder / f"{view_name}-{self._n:04d}.dcm"
+        if self.send_to is not None:
+            from drillnav.drivers.dicom_scp import send_files
+
+            host, port, called = self.send_to
+            try:
+                statuses = send_files(host=host, port=port, called_ae=called, paths=[tmp], calling_ae="TWIN-CARM")
+            finally:
+                tmp.unlink()
+            if statuses != [0]:
+                raise RuntimeError(f"the C-STORE of shot '{view_name}' failed with status {statuses}")
+            return final
         write_projection(final.with_suffix(".json"), self.scene.views[view_name])
         tmp.rename(final)  # appears whole, never half-written
         return final
