@@ -56,9 +56,9 @@ def _dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
-def _detector(dictionary: str) -> cv2.aruco.ArucoDetector:
+def _detector(dictionary: str, *, refine: bool = True) -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX if refine else cv2.aruco.CORNER_REFINE_NONE
     params.cornerRefinementWinSize = 4
     params.cornerRefinementMinAccuracy = 0.01
     params.adaptiveThreshWinSizeMin = 7
@@ -103,6 +103,7 @@ class VideoMarkerLocator:
         tag_to_bb_offset_mm: float = 2.0,
         dictionary: str = "DICT_6X6_250",
         corner_sigma_px: float = 0.1,
+        detect_below_px: int = 800,
     ) -> None:
         self.camera = camera
         self.marker_ids = frozenset(int(i) for i in marker_ids)
@@ -110,6 +111,9 @@ class VideoMarkerLocator:
         self.offset_mm = float(tag_to_bb_offset_mm)
         self.corner_sigma_px = float(corner_sigma_px)
         self._detector = _detector(dictionary)
+        # Large frames are searched at half resolution (4x fewer pixels) and the corners refined at full resolution.
+        self._coarse = _detector(dictionary, refine=False)
+        self.detect_below_px = detect_below_px
         self._object = tag_object_points(self.tag_size_mm)
 
     def locate(self, image: NDArray[np.uint8]) -> VideoDetections:
@@ -117,7 +121,15 @@ class VideoMarkerLocator:
         h, w = gray.shape
         if (w, h) != (self.camera.width, self.camera.height):
             raise ValueError(f"frame is {w}x{h} but the camera calibration is for {self.camera.width}x{self.camera.height}")
-        corners, ids, _ = self._detector.detectMarkers(gray)
+        if w > self.detect_below_px:
+            small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+            corners, ids, _ = self._coarse.detectMarkers(small)
+            if ids is not None:
+                pts = np.concatenate([c.reshape(4, 2) for c in corners]) * 2.0 + 0.5
+                refined = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+                corners = [refined[4 * i : 4 * i + 4].reshape(1, 4, 2) for i in range(len(ids))]
+        else:
+            corners, ids, _ = self._detector.detectMarkers(gray)
         found: list[VideoMarker] = []
         ignored: list[int] = []
         if ids is not None:

@@ -73,6 +73,9 @@ class RegistrationNode:
         self._wake = threading.Condition()
         self._stop = threading.Event()
         self._last_overlay = 0.0
+        self._pe = None
+        self._pe_time = 0.0
+        self._pe_registration = -1
         self._pub_axis = session.declare_publisher(key(prefix, "axis_carm"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_status = session.declare_publisher(key(prefix, "status"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_events = session.declare_publisher(key(prefix, "events"), encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -176,7 +179,11 @@ class RegistrationNode:
         axis = self.axis_drill.transformed(reg.carm_from_drill)
         centroid = np.mean([p.position_carm_mm for p in self.poses if p.marker_id in reg.used_ids], axis=0)
         work = axis.closest_point(centroid)
-        pe = predicted_axis_error(video, self.poses, reg, self.axis_drill, working_point_carm_mm=work, samples=16)
+        # The Monte-Carlo prediction changes slowly with the drill pose: refresh it twice a second, not per frame.
+        if self._pe is None or self._pe_registration != self.registration_id or time.monotonic() - self._pe_time > 0.5:
+            self._pe = predicted_axis_error(video, self.poses, reg, self.axis_drill, working_point_carm_mm=work, samples=32)
+            self._pe_time, self._pe_registration = time.monotonic(), self.registration_id
+        pe = self._pe
         now = time.time_ns()
         doc = {
             "stamp_ns": now, "frame_id": "carm", "point_mm": work.tolist(), "direction": axis.direction.tolist(),
