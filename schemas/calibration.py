@@ -7,12 +7,16 @@ import json
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import numpy as np
 
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.line import Line3D
 
 from .geometry_json import axis_from_json, axis_to_json
+
+CAMERA_SCHEMA = json.loads(Path(__file__).with_name("camera_calibration.schema.json").read_text())
+DRILL_SCHEMA = json.loads(Path(__file__).with_name("drill_calibration.schema.json").read_text())
 
 __all__ = [
     "camera_calibration_to_json",
@@ -39,11 +43,7 @@ def camera_calibration_to_json(camera: PinholeCamera, *, rms_px: float, per_view
 
 def camera_calibration_from_json(doc: Any, *, source: str = "camera calibration") -> PinholeCamera:
     """Build the camera; ``ValueError`` naming the missing or bad field otherwise."""
-    if not isinstance(doc, dict):
-        raise ValueError(f"{source}: expected a JSON object")
-    for key in ("image_size", "camera_matrix", "distortion"):
-        if key not in doc:
-            raise ValueError(f"{source}: missing field '{key}'")
+    _validate(doc, CAMERA_SCHEMA, source)
     try:
         w, h = (int(v) for v in doc["image_size"])
         k = np.asarray(doc["camera_matrix"], dtype=np.float64)
@@ -54,6 +54,14 @@ def camera_calibration_from_json(doc: Any, *, source: str = "camera calibration"
         return PinholeCamera(width=w, height=h, camera_matrix=k, distortion=d)
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
+
+
+def _validate(doc: Any, schema: dict, source: str) -> None:
+    try:
+        jsonschema.validate(doc, schema)
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        raise ValueError(f"{source}: invalid at {where}: {exc.message}") from None
 
 
 def _read_json(path: str | Path) -> Any:
@@ -90,6 +98,5 @@ def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: st
 
 def read_drill_calibration(path: str | Path) -> Line3D:
     doc = _read_json(path)
-    if not isinstance(doc, dict) or "axis_camera" not in doc:
-        raise ValueError(f"{path}: missing field 'axis_camera'")
+    _validate(doc, DRILL_SCHEMA, str(path))
     return axis_from_json(doc["axis_camera"], name=f"{path}: axis_camera")

@@ -144,3 +144,28 @@ def test_drill_axis_cli(tmp_path, capsys):
     (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n junk")
     assert main(["calibrate", "drill-axis", str(tmp_path / "corrupt.png"), "--camera", str(cam), "--out", str(out)]) == 1
     assert "not a readable image" in capsys.readouterr().err
+
+
+def test_calibration_files_validated(tmp_path):
+    from drillnav.schemas.calibration import write_camera_calibration
+
+    p = tmp_path / "camera.json"
+    write_camera_calibration(p, TRUE, rms_px=0.2, per_view_errors_px=[0.1, 0.3], label="t")
+    assert read_camera_calibration(p).focal_px == TRUE.focal_px
+    doc = json.loads(p.read_text())
+    doc["distortion"] = [0.1, 0.2]
+    p.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="invalid at distortion"):
+        read_camera_calibration(p)
+    (tmp_path / "drill.json").write_text(json.dumps({"axis_camera": {"point_mm": [0, 0]}}))
+    with pytest.raises(ValueError, match="axis_camera"):
+        read_drill_calibration(tmp_path / "drill.json")
+
+
+def test_no_board_found_and_one_view(tmp_path, capsys):
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
+    assert main(["calibrate", "camera", str(blank), str(blank), str(blank), "--board", "checkerboard:9x6:25mm", "--out", str(tmp_path / "c.json")]) == 1
+    assert "was not found in any of the 3 views" in capsys.readouterr().err
+    assert main(["calibrate", "camera", str(blank), "--board", "checkerboard:9x6:25mm", "--out", str(tmp_path / "c.json")]) == 1
+    assert "at least 3 views" in capsys.readouterr().err
