@@ -55,6 +55,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     "drillnav.FluoroMarkers": {"type": "object", "required": ["stamp_ns", "registration_id", "markers"]},
     "drillnav.Status": {"type": "object", "required": ["stamp_ns", "state"]},
     "drillnav.Event": {"type": "object", "required": ["stamp_ns", "level", "message"]},
+    "drillnav.TwinTruth": {"type": "object", "required": ["frame_stamp_ns", "carm_from_drill", "drill_axis_carm"]},
 }
 
 

@@ -36,6 +36,7 @@ TOPICS: dict[str, Topic] = {
     "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz"),
     "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
     "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
+    "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
 }
 
 ALIASES = {"drill-axis": "axis_carm", "status": "status", "events": "events", "markers": "camera_markers", "shots": "fluoro_shot"}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import threading
+import time
 
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import ALIASES, TOPICS, Encoding, key
@@ -46,3 +47,24 @@ def register(subparsers) -> None:
     p.add_argument("--count", type=int, default=0, help="stop after N messages")
     p.add_argument("--timeout", type=float, default=0.0, help="give up after S seconds")
     p.set_defaults(func=_listen)
+    register_replay(subparsers)
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from .replay import replay
+
+    with open_session(mode="peer", listen=args.listen or [], connect=args.connect or [], multicast_scouting=False) as session:
+        time.sleep(args.wait)  # let subscribers connect before the first message
+        n = replay(args.file, session, rate=args.rate)
+    print(f"replayed {n} messages from {args.file}")
+    return 0
+
+
+def register_replay(subparsers) -> None:
+    p = subparsers.add_parser("replay", help="republish an MCAP recording at the recorded timing")
+    p.add_argument("file")
+    p.add_argument("--rate", type=float, default=1.0)
+    p.add_argument("--listen", action="append", help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448")
+    p.add_argument("--connect", action="append", help="zenoh endpoint to connect to, e.g. the daemon's tcp/127.0.0.1:7447")
+    p.add_argument("--wait", type=float, default=1.0, help="seconds to wait for subscribers before replaying")
+    p.set_defaults(func=_replay)
