@@ -55,6 +55,17 @@ def run_registration(args: argparse.Namespace) -> dict:
 
     t = time.perf_counter()
     poses = register_markers(detections, [img.view for img in images], marker_set)
+    if args.refine_gi:
+        from dataclasses import replace
+
+        from drillnav.registration.kcr import refine_marker_pose
+
+        refined = []
+        for p in poses:
+            seen = [(img.view, img.pixels_log) for img, det in zip(images, detections) if p.marker_id in det.by_id()]
+            r = refine_marker_pose(marker_set.by_id(p.marker_id), p.carm_from_marker, [v for v, _ in seen], [i for _, i in seen])
+            refined.append(replace(p, carm_from_marker=r.carm_from_marker, converged=p.converged and r.converged))
+        poses = tuple(refined)
     timings["marker_registration_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -109,4 +120,5 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="result.json")
     p.add_argument("--overlays", help="folder for overlay PNGs")
     p.add_argument("--mask-markers", action="store_true", help="mask the markers out of the overlays")
+    p.add_argument("--refine-gi", action="store_true", help="refine each marker pose by the reference's DRR + gradient information + CMA-ES (about 1.5 s per marker)")
     p.set_defaults(func=_handler)
