@@ -83,3 +83,18 @@ def test_too_few_common_markers(scene, solved):
 def test_blank_fluoro_finds_nothing(scene):
     det = detect_markers(np.random.default_rng(0).normal(2.0, 0.02, (976, 976)).astype(np.float32), scene.marker_set)
     assert det.markers == ()
+
+
+def test_marker_cut_by_the_field_edge_is_reported_not_guessed(scene):
+    img = scene.fluoro_log["inlet"]
+    view = scene.views["inlet"]
+    centres = view.project(np.array([t[:3, 3] for t in scene.carm_from_marker.values()]))
+    # Shift the image so the left-most marker's ring crosses the left border.
+    shift = int(centres[:, 0].min()) - 20
+    moved = np.full_like(img, float(np.median(img)))
+    moved[:, : img.shape[1] - shift] = img[:, shift:]
+    det = detect_markers(moved, scene.marker_set)
+    assert any("outside the field of view" in r.reason for r in det.rejected)
+    assert len(det.markers) < len(scene.carm_from_marker)
+    ids = [m.marker_id for m in det.markers]
+    assert len(ids) == len(set(ids)) and set(ids) <= set(scene.carm_from_marker)
