@@ -57,6 +57,7 @@ class FluoroImage:
     sop_class: str
     frame_index: int
     geometry_source: str  # "projection-matrix" or "positioner"
+    view_name: str  # from the positioner angles (e.g. "p+0s-25"), else the file name
 
 
 def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> tuple[CArmView, str]:
@@ -123,6 +124,10 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
     photometric = str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2"))
     log_processed = str(getattr(ds, "Manufacturer", "")) == "drillnav digital twin" or "LOG" in str(getattr(ds, "PixelIntensityRelationship", "")).upper()
+    try:
+        view_name = f"p{float(ds.PositionerPrimaryAngle):+.0f}s{float(ds.PositionerSecondaryAngle):+.0f}"
+    except (AttributeError, TypeError, ValueError):
+        view_name = p.stem.replace(".", "_")
     out = []
     for i, frame in enumerate(frames):
         values = frame * slope + intercept
@@ -134,5 +139,5 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
             # A processed MONOCHROME2 image of unknown scale: map its range onto typical line integrals.
             lo, hi = np.percentile(values, [0.5, 99.5])
             values = (values - lo) / max(hi - lo, 1e-6) * 6.0
-        out.append(FluoroImage(pixels_log=values.astype(np.float32), view=view, source_file=str(p), sop_class=SUPPORTED_SOP_CLASSES[sop], frame_index=i, geometry_source=geometry_source))
+        out.append(FluoroImage(pixels_log=values.astype(np.float32), view=view, source_file=str(p), sop_class=SUPPORTED_SOP_CLASSES[sop], frame_index=i, geometry_source=geometry_source, view_name=view_name))
     return out

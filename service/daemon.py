@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import uvicorn
@@ -131,7 +130,8 @@ class Daemon:
                     self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "error", "message": f"fluoroscopy refused: {exc}"}))
                     continue
                 for img in images:
-                    name = Path(img.source_file).stem.split("-")[0]
+                    # A re-shot of the same view replaces the earlier shot of it in the node.
+                    name = img.view_name
                     stamp = time.time_ns()
                     self.session.put(key(self.prefix, "fluoro_shot"), msg.fluoro_shot(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file))
                     self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))

@@ -53,6 +53,7 @@ def test_geometry_from_positioner_when_json_absent(scene_dir, tmp_path):
     (img,) = read_fluoro(tmp_path / "a.dcm")
     (ref,) = read_fluoro(scene_dir / "fluoro/inlet.dcm")
     assert img.geometry_source == "positioner" and ref.geometry_source == "projection-matrix"
+    assert img.view_name == "p+0s-25"
     np.testing.assert_allclose(img.view.projection_matrix, ref.view.projection_matrix, rtol=1e-6, atol=1e-6)
 
 
