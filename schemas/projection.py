@@ -6,7 +6,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+import jsonschema
+
 from drillnav.registration.carm import CArmView
+
+PROJECTION_SCHEMA = json.loads(Path(__file__).with_name("projection.schema.json").read_text())
 
 __all__ = ["view_to_json", "view_from_json", "write_projection", "read_projection"]
 
@@ -21,11 +25,11 @@ def view_to_json(view: CArmView) -> dict[str, Any]:
 
 
 def view_from_json(doc: Any, *, source: str = "projection") -> CArmView:
-    if not isinstance(doc, dict):
-        raise ValueError(f"{source}: expected a JSON object")
-    for key in ("projection_matrix", "rows", "columns", "pixel_spacing_mm"):
-        if key not in doc:
-            raise ValueError(f"{source}: missing field '{key}'")
+    try:
+        jsonschema.validate(doc, PROJECTION_SCHEMA)
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        raise ValueError(f"{source}: invalid at {where}: {exc.message}") from None
     try:
         return CArmView(projection_matrix=doc["projection_matrix"], rows=int(doc["rows"]), columns=int(doc["columns"]), pixel_spacing_mm=tuple(doc["pixel_spacing_mm"]))
     except (TypeError, ValueError) as exc:

@@ -6,13 +6,30 @@ import json
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import numpy as np
 
 from drillnav.registration.line import Line3D
 
 from .geometry_json import axis_from_json, axis_to_json, transform_from_json, transform_to_json
 
-__all__ = ["truth_to_json", "read_truth", "plan_to_json", "Truth"]
+__all__ = ["truth_to_json", "read_truth", "plan_to_json", "read_plan", "Truth", "TRUTH_SCHEMA", "PLAN_SCHEMA"]
+
+TRUTH_SCHEMA = json.loads(Path(__file__).with_name("truth.schema.json").read_text())
+PLAN_SCHEMA = json.loads(Path(__file__).with_name("plan.schema.json").read_text())
+
+
+def _validated(path: str | Path, schema: dict) -> dict[str, Any]:
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+        jsonschema.validate(doc, schema)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: not valid JSON ({exc})") from None
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(x) for x in exc.absolute_path) or "(top level)"
+        raise ValueError(f"{p}: invalid at {where}: {exc.message}") from None
+    return doc
 
 
 def truth_to_json(*, carm_from_drill, carm_from_ct, drill_axis_carm: Line3D, corridor_entry_carm_mm, carm_from_marker: dict[int, Any], corridor: str, seed: int) -> dict[str, Any]:
@@ -40,7 +57,12 @@ class Truth:
 
 
 def read_truth(path: str | Path) -> Truth:
-    return Truth(json.loads(Path(path).read_text()))
+    return Truth(_validated(path, TRUTH_SCHEMA))
+
+
+def read_plan(path: str | Path) -> dict[str, Any]:
+    """plan.json, validated against plan.schema.json."""
+    return _validated(path, PLAN_SCHEMA)
 
 
 def plan_to_json(corridors) -> dict[str, Any]:

@@ -114,3 +114,25 @@ def test_register_bad_inputs_one_line(scene_dir, tmp_path, capsys):
     assert main(b) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "marker" in err
+
+
+def test_scene_files_validate_against_their_schemas(scene_dir, tmp_path):
+    from drillnav.schemas.projection import read_projection
+    from drillnav.schemas.scene_files import read_plan, read_truth
+
+    truth = read_truth(scene_dir / "truth.json")
+    assert len(truth.carm_from_marker) == 5
+    assert [t["name"] for t in read_plan(scene_dir / "plan.json")["trajectories"]] == ["AIIS-PSIS", "superior-ramus", "posterior-column"]
+    assert read_projection(scene_dir / "fluoro" / "inlet.json").rows == 976
+    doc = json.loads((scene_dir / "fluoro" / "inlet.json").read_text())
+    doc["projection_matrix"] = doc["projection_matrix"][:2]
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    from drillnav.schemas.projection import read_projection as rp
+
+    with pytest.raises(ValueError, match="invalid at projection_matrix"):
+        rp(tmp_path / "p.json")
+    bad = json.loads((scene_dir / "truth.json").read_text())
+    del bad["carm_from_ct"]
+    (tmp_path / "t.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="carm_from_ct"):
+        read_truth(tmp_path / "t.json")
