@@ -1,4 +1,4 @@
-"""The twin C-arm's DICOM output: XA images with the positioner attributes a C-arm sends."""
+"""The twin's DICOM output: the C-arm's XA images with their positioner attributes, and the preoperative CT series."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 from pydicom.dataset import FileDataset, FileMetaDataset
-from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
+from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
 
-__all__ = ["write_xa", "LOG_SCALE"]
+from drillnav.registration.volume import Volume
+
+__all__ = ["write_xa", "write_ct_series", "LOG_SCALE"]
 
 # Stored value = log attenuation x LOG_SCALE (RescaleSlope = 1 / LOG_SCALE): a log-processed, MONOCHROME2 image.
 LOG_SCALE = 4000.0
@@ -65,3 +67,47 @@ def write_xa(
     ds.PixelData = np.clip(np.round(image_log * LOG_SCALE), 0, 65535).astype(np.uint16).tobytes()
     ds.save_as(str(path), enforce_file_format=True)
     return path
+
+
+def write_ct_series(folder: str | Path, volume: Volume, *, patient_id: str = "TWIN", series_description: str = "twin pelvis CT") -> list[Path]:
+    """Write ``volume`` (int16 HU, axial slices along +k) as a CT Image Storage series, one file per slice."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    a = volume.patient_from_voxel
+    spacing = volume.spacing_mm
+    row_dir, col_dir = a[:3, 0] / spacing[0], a[:3, 1] / spacing[1]
+    study, series, frame = generate_uid(), generate_uid(), generate_uid()
+    now = dt.datetime.now(dt.timezone.utc)
+    data = np.asarray(volume.data)
+    if data.dtype != np.int16:
+        data = np.clip(np.rint(data), -32768, 32767).astype(np.int16)
+    paths = []
+    for k in range(data.shape[0]):
+        path = folder / f"CT{k + 1:04d}.dcm"
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
+        ds.Modality, ds.Manufacturer, ds.SeriesDescription = "CT", "drillnav digital twin", series_description
+        ds.PatientName, ds.PatientID, ds.PatientPosition = "Twin^Pelvis", patient_id, "HFS"
+        ds.StudyDate = ds.SeriesDate = now.strftime("%Y%m%d")
+        ds.StudyTime = ds.SeriesTime = now.strftime("%H%M%S")
+        ds.SeriesNumber, ds.InstanceNumber = 1, k + 1
+        ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"]
+        ds.ImagePositionPatient = [f"{v:.4f}" for v in a[:3, :3] @ [0.0, 0.0, k] + a[:3, 3]]
+        ds.ImageOrientationPatient = [f"{v:.6f}" for v in (*row_dir, *col_dir)]
+        ds.PixelSpacing = [f"{spacing[1]:.4f}", f"{spacing[0]:.4f}"]  # row spacing (between rows), column spacing
+        ds.SliceThickness = f"{spacing[2]:.4f}"
+        ds.KVP = "120"
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.Rows, ds.Columns = data.shape[1], data.shape[2]
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.RescaleIntercept, ds.RescaleSlope, ds.RescaleType = "0", "1", "HU"
+        ds.WindowCenter, ds.WindowWidth = "300", "1500"
+        ds.PixelData = np.ascontiguousarray(data[k]).tobytes()
+        ds.save_as(str(path), enforce_file_format=True)
+        paths.append(path)
+    return paths

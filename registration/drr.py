@@ -1,0 +1,143 @@
+"""Digitally reconstructed radiographs of a CT through the C-arm projection model.
+
+Each detector pixel's ray from the source is clipped to the volume's box and
+sampled at equal steps (one voxel by default) by trilinear interpolation of
+the attenuation volume; the sum times the step is the line integral, the
+same quantity the fluoroscopy intake yields (log attenuation).
+
+The kernel is compiled by numba (``parallel=True``, one detector row per
+task): a per-pixel loop in LLVM-compiled code reaches the speed targets on
+two CPU cores, which numpy's whole-array gathers cannot (they materialise
+every sample point), and it needs no compiler or GPU on the user's machine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from .carm import CArmView
+from .transforms import invert
+from .volume import MU_WATER_PER_MM, Volume, hu_to_mu
+
+__all__ = ["DrrVolume", "render_drr", "drr_pyramid"]
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
+def _drr_kernel(mu, origin_vox, vox_from_pix, carm_from_pix, step_mm, row0, col0, stride, out):  # pragma: no cover - compiled
+    nk, nj, ni = mu.shape
+    rows, cols = out.shape
+    hi_i, hi_j, hi_k = ni - 1.0, nj - 1.0, nk - 1.0
+    for r in numba.prange(rows):
+        v = row0 + r * stride
+        for c in range(cols):
+            u = col0 + c * stride
+            # Ray direction in C-arm mm (for its length) and in voxel units per mm.
+            wx = carm_from_pix[0, 0] * u + carm_from_pix[0, 1] * v + carm_from_pix[0, 2]
+            wy = carm_from_pix[1, 0] * u + carm_from_pix[1, 1] * v + carm_from_pix[1, 2]
+            wz = carm_from_pix[2, 0] * u + carm_from_pix[2, 1] * v + carm_from_pix[2, 2]
+            inv_len = 1.0 / np.sqrt(wx * wx + wy * wy + wz * wz)
+            di = (vox_from_pix[0, 0] * u + vox_from_pix[0, 1] * v + vox_from_pix[0, 2]) * inv_len
+            dj = (vox_from_pix[1, 0] * u + vox_from_pix[1, 1] * v + vox_from_pix[1, 2]) * inv_len
+            dk = (vox_from_pix[2, 0] * u + vox_from_pix[2, 1] * v + vox_from_pix[2, 2]) * inv_len
+            # Slab clipping against [0, n-1] on each axis; t in mm along the ray.
+            t0 = -1e30
+            t1 = 1e30
+            for o, d, hi in ((origin_vox[0], di, hi_i), (origin_vox[1], dj, hi_j), (origin_vox[2], dk, hi_k)):
+                if abs(d) < 1e-12:
+                    if o < 0.0 or o > hi:
+                        t0 = 1e30
+                else:
+                    a = (0.0 - o) / d
+                    b = (hi - o) / d
+                    if a > b:
+                        a, b = b, a
+                    t0 = max(t0, a)
+                    t1 = min(t1, b)
+            total = 0.0
+            if t1 > t0:
+                n = int((t1 - t0) / step_mm)
+                t = t0 + 0.5 * ((t1 - t0) - (n - 1) * step_mm) if n > 0 else t0
+                for _ in range(n):
+                    x = origin_vox[0] + t * di
+                    y = origin_vox[1] + t * dj
+                    z = origin_vox[2] + t * dk
+                    i0 = min(max(int(x), 0), ni - 2)
+                    j0 = min(max(int(y), 0), nj - 2)
+                    k0 = min(max(int(z), 0), nk - 2)
+                    fx = x - i0
+                    fy = y - j0
+                    fz = z - k0
+                    c00 = mu[k0, j0, i0] + fx * (mu[k0, j0, i0 + 1] - mu[k0, j0, i0])
+                    c01 = mu[k0, j0 + 1, i0] + fx * (mu[k0, j0 + 1, i0 + 1] - mu[k0, j0 + 1, i0])
+                    c10 = mu[k0 + 1, j0, i0] + fx * (mu[k0 + 1, j0, i0 + 1] - mu[k0 + 1, j0, i0])
+                    c11 = mu[k0 + 1, j0 + 1, i0] + fx * (mu[k0 + 1, j0 + 1, i0 + 1] - mu[k0 + 1, j0 + 1, i0])
+                    c0 = c00 + fy * (c01 - c00)
+                    c1 = c10 + fy * (c11 - c10)
+                    total += c0 + fz * (c1 - c0)
+                    t += step_mm
+            out[r, c] = total * step_mm
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class DrrVolume:
+    """An attenuation volume (1/mm, float32, C order) ready for the kernel, with its voxel grid."""
+
+    mu: NDArray[np.float32]
+    patient_from_voxel: NDArray[np.float64]
+
+    @classmethod
+    def from_ct(cls, volume: Volume, *, downsample: int = 1, threshold_hu: float | None = None) -> "DrrVolume":
+        """Attenuation from HU; with ``threshold_hu``, only the attenuation in excess of it (e.g. 150: bone alone)."""
+        v = volume.downsampled(downsample)
+        hu = np.asarray(v.data, np.float32)
+        if threshold_hu is not None:
+            mu = np.maximum(hu - np.float32(threshold_hu), 0.0) * np.float32(MU_WATER_PER_MM / 1000.0)
+        else:
+            mu = hu_to_mu(hu)
+        mu = np.ascontiguousarray(mu, dtype=np.float32)
+        return cls(mu=mu, patient_from_voxel=v.patient_from_voxel)
+
+    @property
+    def spacing_mm(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.patient_from_voxel[:3, :3], axis=0)
+
+
+def render_drr(
+    volume: DrrVolume,
+    view: CArmView,
+    carm_from_ct: NDArray[np.float64],
+    *,
+    roi: tuple[int, int, int, int] | None = None,
+    stride: int = 1,
+    step_mm: float | None = None,
+    out: NDArray[np.float32] | None = None,
+) -> NDArray[np.float32]:
+    """Line integrals of attenuation (rows, columns) over ``view``'s pixels (or ``roi`` = col0, row0, col1, row1).
+
+    ``stride`` samples every n-th pixel of the view (pixel centres kept on the
+    view's grid); ``step_mm`` defaults to the smallest voxel size.
+    """
+    col0, row0, col1, row1 = roi if roi is not None else (0, 0, view.columns, view.rows)
+    shape = ((row1 - row0 + stride - 1) // stride, (col1 - col0 + stride - 1) // stride)
+    if out is None:
+        out = np.empty(shape, np.float32)
+    elif out.shape != shape:
+        raise ValueError(f"out has shape {out.shape}, the DRR needs {shape}")
+    voxel_from_carm = np.linalg.inv(volume.patient_from_voxel) @ invert(carm_from_ct)
+    m = view.projection_matrix[:, :3]
+    carm_from_pix = np.linalg.inv(m)  # direction (unnormalised) through pixel (u, v, 1)
+    source = view.source_position_mm
+    origin_vox = voxel_from_carm[:3, :3] @ source + voxel_from_carm[:3, 3]
+    vox_from_pix = voxel_from_carm[:3, :3] @ carm_from_pix
+    step = float(step_mm if step_mm is not None else np.min(volume.spacing_mm))
+    _drr_kernel(volume.mu, origin_vox, vox_from_pix, carm_from_pix, step, float(row0), float(col0), float(stride), out)
+    return out
+
+
+def drr_pyramid(volume: Volume, factors: tuple[int, ...] = (1, 2, 4), *, threshold_hu: float | None = None) -> dict[int, DrrVolume]:
+    """Attenuation volumes at each downsampling factor, for coarse-to-fine registration."""
+    return {f: DrrVolume.from_ct(volume, downsample=f, threshold_hu=threshold_hu) for f in factors}
