@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .carm import CArmView
+from .ct_prealign import prealign_translation
 from .drr import DrrVolume, render_drr
 from .errors import DegenerateInput
 from .transforms import from_rotvec, make_transform
@@ -142,6 +143,7 @@ class _LevelProblem:
         self.fixed: list[tuple[NDArray[np.float32], NDArray[np.float32]]] = []
         self.valid: list[NDArray[np.bool_]] = []
         self.buffers: list[NDArray[np.float32]] = []
+        self.images: list[NDArray[np.float32]] = []
         b = level.detector_bin
         for shot in shots:
             view = shot.view.binned(b)
@@ -160,6 +162,7 @@ class _LevelProblem:
             self.views.append(view)
             self.fixed.append((_normalised(gx[valid]), _normalised(gy[valid])))
             self.valid.append(valid)
+            self.images.append(binned)
             self.buffers.append(np.empty((rows, cols), np.float32))
 
     def similarity(self, carm_from_ct: NDArray[np.float64]) -> float:
@@ -205,6 +208,7 @@ def register_ct(
     seed: int = 0,
     border_px: int = 16,
     min_similarity: float = 0.5,
+    search_mm: float | None = None,
 ) -> CtRegistration:
     """Register the CT to 1+ fluoroscopy shots, starting from ``carm_from_ct_initial`` (4, 4).
 
@@ -213,6 +217,9 @@ def register_ct(
     registering repeatedly). ``levels`` defaults to :data:`SINGLE_VIEW_LEVELS`
     for one shot and :data:`DEFAULT_LEVELS` for more. ``converged`` requires the last level to stop on
     its tolerance (not its budget) with GC at least ``min_similarity``.
+    ``search_mm`` first translates the CT by matching the views in DRRs
+    widened by that much (:mod:`ct_prealign`), for starts that are off by
+    more than CMA-ES's capture range (a few centimetres).
     """
     if not shots:
         raise DegenerateInput("CT registration needs at least one fluoroscopy view")
@@ -232,6 +239,9 @@ def register_ct(
         t0 = time.perf_counter()
         problem = _LevelProblem(shots, pyramid[level.volume_factor], level, border_px)
         if n == 0:
+            if search_mm:
+                pre = prealign_translation(problem.volume, problem.views, problem.images, problem.valid, current, search_mm=search_mm)
+                current = pre.carm_from_ct
             initial_similarity = problem.similarity(current)
         scale = _search_scale(level, shape)
         es = cma.CMAEvolutionStrategy(

@@ -42,6 +42,24 @@ class Corridor:
     radius_mm: float = 4.0
 
 
+def _bone_along(name: str, start_mm, end_mm, *, radius_mm: float, overhang_mm: float = 8.0) -> Ellipsoid:
+    """A bone ellipsoid whose long axis runs from ``start_mm`` to ``end_mm`` (plus ``overhang_mm`` at each end)."""
+    a, b = np.asarray(start_mm, dtype=np.float64), np.asarray(end_mm, dtype=np.float64)
+    d = b - a
+    length = float(np.linalg.norm(d))
+    rot, _ = Rotation.align_vectors([d / length], [[1.0, 0.0, 0.0]])
+    return Ellipsoid(name=name, centre_mm=tuple((a + b) / 2), semi_axes_mm=(length / 2 + overhang_mm, radius_mm, radius_mm),
+                     euler_deg=tuple(rot.as_euler("xyz", degrees=True)))
+
+
+def _mirror(p, side: float) -> tuple[float, float, float]:
+    return (side * -p[0], p[1], p[2])  # the corridors are planned on the patient's right (x < 0)
+
+
+# Bone axes of the superior pubic ramus and the posterior column (right side), which the corridors follow.
+_RAMUS = ((-84.0, -26.0, -37.0), (-12.0, -58.0, -52.0))
+_COLUMN = ((-90.0, 8.0, -5.0), (-72.0, 28.0, -100.0))
+
 BODY = Ellipsoid(name="body", centre_mm=(0.0, 0.0, 0.0), semi_axes_mm=(170.0, 115.0, 220.0), tissue="soft", shell_mm=0.0)
 
 PELVIS: tuple[Ellipsoid, ...] = tuple(
@@ -50,16 +68,18 @@ PELVIS: tuple[Ellipsoid, ...] = tuple(
     for e in (
         Ellipsoid(name=f"ilium{side:+.0f}", centre_mm=(side * 95.0, 25.0, 55.0), semi_axes_mm=(22.0, 62.0, 72.0), euler_deg=(0.0, 0.0, side * 28.0)),
         Ellipsoid(name=f"acetabulum{side:+.0f}", centre_mm=(side * 92.0, -5.0, -25.0), semi_axes_mm=(30.0, 30.0, 30.0)),
-        Ellipsoid(name=f"superior-ramus{side:+.0f}", centre_mm=(side * 48.0, -45.0, -45.0), semi_axes_mm=(48.0, 11.0, 11.0), euler_deg=(0.0, 0.0, side * -25.0)),
+        _bone_along(f"superior-ramus{side:+.0f}", _mirror(_RAMUS[0], side), _mirror(_RAMUS[1], side), radius_mm=5.0),
+        _bone_along(f"posterior-column{side:+.0f}", _mirror(_COLUMN[0], side), _mirror(_COLUMN[1], side), radius_mm=13.0, overhang_mm=0.0),
         Ellipsoid(name=f"ischium{side:+.0f}", centre_mm=(side * 72.0, 25.0, -85.0), semi_axes_mm=(16.0, 26.0, 38.0)),
         Ellipsoid(name=f"femoral-head{side:+.0f}", centre_mm=(side * 100.0, -8.0, -30.0), semi_axes_mm=(22.0, 22.0, 22.0), shell_mm=1.5),
     )
 ) + (Ellipsoid(name="sacrum", centre_mm=(0.0, 70.0, 40.0), semi_axes_mm=(42.0, 24.0, 70.0), euler_deg=(-20.0, 0.0, 0.0)),)
 
 CORRIDORS: tuple[Corridor, ...] = (
-    Corridor(name="AIIS-PSIS", entry_mm=(-95.0, -15.0, 15.0), target_mm=(-92.0, 70.0, 50.0)),
-    Corridor(name="superior-ramus", entry_mm=(-80.0, -28.0, -38.0), target_mm=(-20.0, -55.0, -50.0), radius_mm=3.5),
-    Corridor(name="posterior-column", entry_mm=(-88.0, 10.0, -10.0), target_mm=(-72.0, 28.0, -95.0), radius_mm=3.5),
+    # Target 84 mm along the original plan direction: inside the ilium, short of the posterior cortex.
+    Corridor(name="AIIS-PSIS", entry_mm=(-95.0, -15.0, 15.0), target_mm=(-92.26006, 62.631629, 46.965965)),
+    Corridor(name="superior-ramus", entry_mm=(-80.0, -28.0, -38.0), target_mm=(-22.0, -53.8, -50.0), radius_mm=3.5),
+    Corridor(name="posterior-column", entry_mm=(-88.0, 10.0, -10.0), target_mm=(-74.0, 25.5, -88.0), radius_mm=3.5),
 )
 
 
