@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drillnav.drivers.ct_volume import read_ct
 from drillnav.drivers.fluoro_dicom import read_fluoro
 from drillnav.drivers.image_files import read_image
 from drillnav.registration.errors import MarkersNotFound
@@ -28,6 +29,8 @@ __all__ = ["register", "run_registration"]
 
 
 def run_registration(args: argparse.Namespace) -> dict:
+    if not args.ct and (args.plan or args.ct_views or args.ct_at):
+        raise ValueError("--plan, --ct-views and --ct-at need --ct")
     timings: dict[str, float] = {}
     t = time.perf_counter()
     marker_set = read_marker_set(args.markers)
@@ -89,6 +92,8 @@ def run_registration(args: argparse.Namespace) -> dict:
         "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "corner_rms_px": reg.corner_rms_px},
         "timings_s": timings,
     }
+    if args.ct:
+        result["ct"] = _ct_mode(args, images, detections, axis_out, pe.cone_half_angle_deg, timings)
     if args.overlays:
         t = time.perf_counter()
         out_dir = check_output_dir(args.overlays)
@@ -100,11 +105,42 @@ def run_registration(args: argparse.Namespace) -> dict:
     return result
 
 
+def _ct_mode(args: argparse.Namespace, images, detections, axis_carm, cone_half_angle_deg: float, timings: dict[str, float]) -> dict:
+    from .ct_mode import axis_in_ct_report, load_plan, register_ct_to_fluoro
+
+    t = time.perf_counter()
+    plan = load_plan(args.plan) if args.plan else None
+    views_dir = check_output_dir(args.ct_views) if args.ct_views else None
+    ct = read_ct(args.ct)
+    timings["ct_read_s"] = time.perf_counter() - t
+    at = None
+    if args.ct_at:
+        try:
+            at = np.array([float(v) for v in args.ct_at.split(",")])
+            assert at.shape == (3,)
+        except (ValueError, AssertionError):
+            raise ValueError(f"--ct-at wants X,Y,Z in CT mm, got '{args.ct_at}'") from None
+    elif plan:
+        at = plan[0].trajectory.entry_mm
+    t = time.perf_counter()
+    reg = register_ct_to_fluoro(ct, images, detections, at_isocentre_mm=at)
+    timings["ct_registration_s"] = time.perf_counter() - t
+    report = axis_in_ct_report(ct, reg, axis_carm, cone_half_angle_deg=cone_half_angle_deg, plan=plan, views_dir=views_dir)
+    report["ct"] = ct.description
+    timings["ct_report_s"] = report.pop("report_s")
+    return report
+
+
 def _handler(args: argparse.Namespace) -> int:
     out = check_output_path(args.out, suffixes=(".json",))
     result = run_registration(args)
     out.write_text(json.dumps(result, indent=1))
     a = result["drill_axis_carm"]
+    if "ct" in result:
+        c = result["ct"]
+        flags = "; ".join(f"{r['trajectory']}: {'BREACH' if r['breach'] else 'clear'} (min clearance {r['min_clearance_mm'] if r['min_clearance_mm'] is None else round(r['min_clearance_mm'], 1)} mm)"
+                          for r in c["conformance"] if r["evaluated"])
+        print(f"CT registered: GC {c['registration']['similarity_gc']:.3f}, {'converged' if c['registration']['converged'] else 'NOT converged'} in {c['registration']['runtime_s']:.1f} s" + (f"; {flags}" if flags else ""))
     print(f"registered with markers {[m['id'] for m in result['markers'] if not m['rejected']]}; axis point {np.round(a['point_mm'], 1).tolist()} mm, "
           f"direction {np.round(a['direction'], 3).tolist()}; predicted error {result['predicted_error']['position_mm']:.2f} mm / {result['predicted_error']['angle_deg']:.2f} deg -> {out}")
     return 0
@@ -120,5 +156,9 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="result.json")
     p.add_argument("--overlays", help="folder for overlay PNGs")
     p.add_argument("--mask-markers", action="store_true", help="mask the markers out of the overlays")
+    p.add_argument("--ct", help="preoperative CT: a folder with one DICOM series or a .nii/.nii.gz file (video-CT mode)")
+    p.add_argument("--plan", help="plan.json: planned trajectories in CT coordinates, judged for conformance")
+    p.add_argument("--ct-views", help="folder for the CT slice images (axial, coronal, sagittal, oblique + mosaic)")
+    p.add_argument("--ct-at", help="X,Y,Z: the CT point the C-arm is centred on (default: the plan's first entry, else the CT centre)")
     p.add_argument("--refine-gi", action="store_true", help="refine each marker pose by the reference's DRR + gradient information + CMA-ES (about 1.5 s per marker)")
     p.set_defaults(func=_handler)

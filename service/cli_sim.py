@@ -11,7 +11,8 @@ import cv2
 from pydicom.uid import generate_uid
 
 from drillnav.drivers.sim import anatomy
-from drillnav.drivers.sim.dicom_io import write_xa
+from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
+from drillnav.drivers.sim.dicom_io import write_ct_series, write_xa
 from drillnav.drivers.sim.scene import PAPER_CARM, Scene, make_scene
 from drillnav.registration.markers import default_marker_set
 from drillnav.schemas.calibration import write_camera_calibration, write_drill_calibration
@@ -26,9 +27,12 @@ from .outputs import check_output_dir
 __all__ = ["register", "write_scene"]
 
 
-def write_scene(scene: Scene, out: Path) -> dict[str, float]:
-    """Write every file of the scene folder; returns timings in s."""
+def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None) -> dict[str, float]:
+    """Write every file of the scene folder (``ct/``, the CT series, when ``ct_voxel_mm``); returns timings in s."""
     t0 = time.perf_counter()
+    if ct_voxel_mm is not None:
+        ct = make_pelvis_ct(seed=scene.seed, voxel_mm=(ct_voxel_mm, ct_voxel_mm, ct_voxel_mm))
+        write_ct_series(out / "ct", ct)
     (out / "fluoro").mkdir(exist_ok=True)
     if not cv2.imwrite(str(out / "camera.png"), scene.camera_image):
         raise CliError(f"could not write {out / 'camera.png'}")
@@ -55,7 +59,10 @@ def _scene(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     scene = make_scene(seed=args.seed, n_markers=args.markers, marker_ids=ids, views=args.views, corridor=args.corridor)
     t1 = time.perf_counter()
-    timings = write_scene(scene, out)
+    if args.ct_voxel_mm is not None and not 0.3 <= args.ct_voxel_mm <= 4.0:
+        raise CliError(f"--ct-voxel-mm must be 0.3..4 mm, got {args.ct_voxel_mm}")
+    voxel = args.ct_voxel_mm if args.ct_voxel_mm is not None else (1.0 if args.ct else None)
+    timings = write_scene(scene, out, ct_voxel_mm=voxel)
     print(f"wrote scene seed {args.seed} ({len(scene.carm_from_marker)} markers, views {', '.join(scene.views)}) to {out} in {t1 - t0 + timings['write_s']:.1f} s")
     return 0
 
@@ -69,5 +76,7 @@ def register(subparsers) -> None:
     s.add_argument("--ids", help="explicit marker ids instead, e.g. 0-4")
     s.add_argument("--views", default="inlet,outlet", help="comma list of ap, lateral, inlet, outlet, lao30, rao30 or PRIMARY:SECONDARY degrees")
     s.add_argument("--corridor", default="AIIS-PSIS", help="target corridor: " + ", ".join(c.name for c in anatomy.CORRIDORS))
+    s.add_argument("--ct", action="store_true", help="also write the preoperative CT as a DICOM series in ct/ (1 mm voxels unless --ct-voxel-mm)")
+    s.add_argument("--ct-voxel-mm", type=float, help="CT voxel size in mm (implies --ct)")
     s.add_argument("--out", required=True)
     s.set_defaults(func=_scene)

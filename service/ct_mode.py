@@ -1,0 +1,147 @@
+"""Video-CT mode: register the CT to the fluoroscopy views, carry the drill axis into CT, judge it against the plan.
+
+``L_V = ct_from_carm @ carm_from_drill @ L_D``. Wiring only: the math is in
+registration/ (ct_registration, conformance, ct_views).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drillnav.drivers.ct_volume import read_ct
+from drillnav.registration.conformance import SurfaceDistance, conformance_along
+from drillnav.registration.ct_registration import CtRegistration, FluoroShot, register_ct
+from drillnav.registration.ct_views import PlannedTrajectory, compose_views, render_ct_views
+from drillnav.registration.errors import DrillnavError
+from drillnav.registration.fluoro_masks import marker_mask, metal_mask
+from drillnav.registration.line import Line3D
+from drillnav.registration.transforms import invert, make_transform
+from drillnav.registration.volume import Volume
+from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
+from drillnav.schemas.scene_files import read_plan
+
+__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "CtModeError"]
+
+
+MAX_ANGLE_TO_JUDGE_DEG = 45.0
+
+
+class CtModeError(DrillnavError):
+    """The CT, plan or their combination cannot be used (names the file and the problem)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlanEntry:
+    trajectory: PlannedTrajectory
+    acceptance: dict[str, Any]
+
+
+def load_plan(path: str | Path) -> list[PlanEntry]:
+    doc = read_plan(path)
+    out = []
+    for t in doc["trajectories"]:
+        acc = dict(t.get("acceptance", {"type": "bone", "threshold_hu": 200.0}))
+        if acc["type"] == "label":
+            acc["path"] = str((Path(path).parent / acc["path"]).resolve())
+        out.append(PlanEntry(trajectory=PlannedTrajectory(name=t["name"], entry_mm=np.asarray(t["entry_mm"], float), target_mm=np.asarray(t["target_mm"], float),
+                                                          radius_mm=float(t["corridor"]["radius_mm"])), acceptance=acc))
+    return out
+
+
+def initial_carm_from_ct(ct: Volume, *, at_isocentre_mm: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """C follows the supine patient (docs/geometry.md), so only a translation: ``at_isocentre_mm`` (CT point the
+    C-arm is centred on: the planned entry, else the CT's centre) goes to the isocentre."""
+    p = ct.centre_mm() if at_isocentre_mm is None else np.asarray(at_isocentre_mm, dtype=np.float64)
+    return make_transform(np.eye(3), -p)
+
+
+def register_ct_to_fluoro(ct: Volume, images, detections, *, at_isocentre_mm=None, search_mm: float = 120.0, seed: int = 0) -> CtRegistration:
+    """Masks markers (detected rings and BBs) and other metal out of each view, then registers from the initial guess."""
+    shots = []
+    for img, det in zip(images, detections):
+        exclude = metal_mask(img.pixels_log)
+        if det is not None:
+            exclude |= marker_mask(img.pixels_log.shape, det)
+        shots.append(FluoroShot(view=img.view, image_log=img.pixels_log, exclude=exclude))
+    return register_ct(ct, shots, initial_carm_from_ct(ct, at_isocentre_mm=at_isocentre_mm), search_mm=search_mm, seed=seed)
+
+
+def _surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDistance:
+    acc = entry.acceptance
+    key = (acc["type"], acc.get("threshold_hu"), acc.get("path"), tuple(acc.get("labels", ())))
+    if key not in cache:
+        pts = np.vstack([entry.trajectory.entry_mm, entry.trajectory.target_mm])
+        if acc["type"] == "bone":
+            cache[key] = SurfaceDistance.bone(ct, threshold_hu=float(acc.get("threshold_hu", 200.0)), around_mm=pts)
+        else:
+            labels = read_ct(acc["path"])
+            if labels.shape != ct.shape or not np.allclose(labels.patient_from_voxel, ct.patient_from_voxel, atol=1e-3):
+                raise CtModeError(f"{acc['path']}: label volume {labels.shape} is not on the CT's grid {ct.shape}")
+            cache[key] = SurfaceDistance.from_mask(np.isin(np.asarray(labels.data), acc["labels"]), ct.patient_from_voxel)
+    return cache[key]
+
+
+def axis_in_ct_report(
+    ct: Volume,
+    reg: CtRegistration,
+    axis_carm: Line3D,
+    *,
+    cone_half_angle_deg: float,
+    plan: list[PlanEntry] | None,
+    views_dir: Path | None,
+) -> dict[str, Any]:
+    """The axis in CT, conformance against each planned trajectory, and the slice images (when ``views_dir``)."""
+    t0 = time.perf_counter()
+    ct_from_carm = invert(reg.carm_from_ct)
+    axis_ct = axis_carm.transformed(ct_from_carm)
+    report: dict[str, Any] = {
+        "carm_from_ct": transform_to_json(reg.carm_from_ct),
+        "registration": {"similarity_gc": reg.similarity, "initial_similarity_gc": reg.initial_similarity, "residual": reg.residual,
+                         "converged": reg.converged, "evaluations": reg.evaluations, "runtime_s": reg.runtime_s,
+                         "levels": [{"similarity_gc": lv.similarity, "evaluations": lv.evaluations, "stop": lv.stop, "seconds": lv.seconds,
+                                     "detector_bin": lv.level.detector_bin, "volume_factor": lv.level.volume_factor} for lv in reg.levels]},
+        "drill_axis_ct": axis_to_json(axis_ct),
+        "conformance": [],
+    }
+    centre = axis_ct.point_mm
+    cache: dict = {}
+    for entry in plan or []:
+        t = entry.trajectory
+        offset = float(axis_ct.distance_to_point(t.entry_mm))
+        planned = (t.target_mm - t.entry_mm) / np.linalg.norm(t.target_mm - t.entry_mm)
+        angle = float(np.degrees(np.arccos(np.clip(axis_ct.direction @ planned, -1.0, 1.0))))
+        row: dict[str, Any] = {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle}
+        if angle > MAX_ANGLE_TO_JUDGE_DEG:
+            row.update(evaluated=False, reason=f"the axis is {angle:.0f} deg off this trajectory (judged within {MAX_ANGLE_TO_JUDGE_DEG:.0f} deg)")
+        else:
+            c = conformance_along(axis_ct, _surface(ct, entry, cache), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
+            row.update(evaluated=True, breach=c.breach, min_clearance_mm=c.min_distance_mm if np.isfinite(c.min_distance_mm) else None,
+                       kwire_radius_mm=c.kwire_radius_mm, entry_ct_mm=None if c.entry_mm is None else [float(v) for v in c.entry_mm],
+                       breach_at_mm=[float(v) for v in c.breach_along_mm[:50]],
+                       along_mm=[round(float(v), 2) for v in c.along_mm[::2]], clearance_mm=[round(float(v), 2) for v in c.distance_mm[::2]])
+        report["conformance"].append(row)
+    if report["conformance"]:
+        nearest = min(report["conformance"], key=lambda r: (not r["evaluated"], r["axis_to_planned_entry_mm"]))
+        report["nearest_trajectory"] = nearest["trajectory"]
+        centre = axis_ct.closest_point(next(e.trajectory.entry_mm for e in plan if e.trajectory.name == nearest["trajectory"]))
+    if views_dir is not None:
+        import cv2
+
+        views = render_ct_views(ct, axis_ct=axis_ct, centre_mm=centre, cone_half_angle_deg=cone_half_angle_deg, plan=[e.trajectory for e in plan or []])
+        files = {}
+        for name, img in views.items():
+            f = views_dir / f"ct-{name}.png"
+            cv2.imwrite(str(f), img)
+            files[name] = str(f)
+        mosaic = views_dir / "ct-views.png"
+        cv2.imwrite(str(mosaic), compose_views(views, caption=f"drill axis (cyan), error cone (yellow), plan (green); GC {reg.similarity:.3f}"))
+        files["mosaic"] = str(mosaic)
+        report["views"] = files
+    report["report_s"] = time.perf_counter() - t0
+    return report
