@@ -1,0 +1,137 @@
+"""DRR against exact line integrals, gradient correlation, fluoroscopy-to-CT registration on the twin, conformance."""
+
+import numpy as np
+import pytest
+
+from drillnav.drivers.sim import anatomy
+from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.drivers.sim.xray import add_ellipsoids, pixel_rays
+from drillnav.registration.conformance import SurfaceDistance, conformance_along, perturbed_axes
+from drillnav.registration.ct_registration import FluoroShot, gradient_correlation, register_ct, rotation_centre_mm
+from drillnav.registration.drr import DrrVolume, drr_pyramid, render_drr
+from drillnav.registration.errors import DegenerateInput
+from drillnav.registration.fluoro_masks import metal_mask
+from drillnav.registration.line import Line3D
+from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform, rotation_angle_deg
+from drillnav.registration.volume import Volume
+
+
+@pytest.fixture(scope="module")
+def ct():
+    return make_pelvis_ct(seed=0, voxel_mm=(1.0, 1.0, 1.0))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(seed=5, views="inlet,outlet")
+
+
+def test_drr_of_a_uniform_box_is_mu_times_chord():
+    a = np.eye(4)
+    a[:3, 3] = [-50.0, -50.0, -50.0]  # 101 voxels of 1 mm from -50 to +50
+    hu = np.full((101, 101, 101), 0, np.int16)  # water
+    mu = DrrVolume.from_ct(Volume(data=hu, patient_from_voxel=a))
+    from drillnav.registration.carm import CArmView
+
+    view = CArmView.from_positioner(primary_deg=0, secondary_deg=0, source_to_detector_mm=1000, source_to_isocenter_mm=600,
+                                    pixel_spacing_mm=(1.0, 1.0), rows=101, columns=101)
+    img = render_drr(mu, view, np.eye(4))
+    # The central ray crosses the box (voxel centres -50..50) over 100 mm of water.
+    assert img[50, 50] == pytest.approx(100.0 * 0.0206, rel=2e-3)
+
+
+def test_drr_matches_exact_line_integrals_of_the_twin_anatomy(ct, scene):
+    view = scene.views["inlet"].binned(8)
+    exact = np.zeros((view.rows, view.columns))
+    add_ellipsoids(exact, view, anatomy.pelvis_ellipsoids_carm(scene.carm_from_ct), rays=pixel_rays(view))
+    drr = render_drr(DrrVolume.from_ct(ct), view, scene.carm_from_ct)
+    assert np.corrcoef(exact.ravel(), drr.ravel())[0, 1] > 0.999
+    assert abs(drr.mean() - exact.mean()) / exact.mean() < 0.01
+
+
+def test_gradient_correlation_bounds():
+    rng = np.random.default_rng(0)
+    img = rng.normal(size=(64, 64)).astype(np.float32)
+    assert gradient_correlation(img, img) == pytest.approx(1.0, abs=1e-6)
+    assert gradient_correlation(img, -img) == pytest.approx(-1.0, abs=1e-6)
+    assert gradient_correlation(img, 3 * img + 7) == pytest.approx(1.0, abs=1e-5)  # gain and offset do not matter
+    assert abs(gradient_correlation(img, rng.normal(size=(64, 64)).astype(np.float32))) < 0.1
+
+
+def _offset(shots, carm_from_ct, rng, *, mm, deg):
+    centre = rotation_centre_mm([s.view for s in shots])
+    d = rng.normal(size=3)
+    a = rng.normal(size=3)
+    p = from_rotvec(np.radians(deg) * a / np.linalg.norm(a))
+    p[:3, 3] = centre - p[:3, :3] @ centre + mm * d / np.linalg.norm(d)
+    return p @ carm_from_ct
+
+
+def test_two_view_registration_recovers_the_pose(ct, scene):
+    pyramid = drr_pyramid(ct, (2, 4))
+    shots = [FluoroShot(view=scene.views[n], image_log=scene.fluoro_log[n], exclude=metal_mask(scene.fluoro_log[n])) for n in scene.views]
+    start = _offset(shots, scene.carm_from_ct, np.random.default_rng(1), mm=18.0, deg=4.0)
+    res = register_ct(pyramid, shots, start, seed=1)
+    diff = res.carm_from_ct @ invert(scene.carm_from_ct)
+    entry = scene.corridor_entry_carm_mm
+    assert np.linalg.norm(apply(diff, [entry])[0] - entry) < 0.5
+    assert rotation_angle_deg(diff) < 0.3
+    assert res.converged and res.similarity > res.initial_similarity
+
+
+def test_prealignment_captures_a_start_centimetres_away(ct, scene):
+    pyramid = drr_pyramid(ct, (2, 4))
+    shots = [FluoroShot(view=scene.views[n], image_log=scene.fluoro_log[n], exclude=metal_mask(scene.fluoro_log[n])) for n in scene.views]
+    start = make_transform(np.eye(3), -np.asarray(scene.corridor.entry_mm))  # C-arm centred on the planned entry
+    entry = scene.corridor_entry_carm_mm
+    assert np.linalg.norm(apply(start @ invert(scene.carm_from_ct), [entry])[0] - entry) > 40  # far outside CMA-ES's reach
+    res = register_ct(pyramid, shots, start, seed=2, search_mm=120.0)
+    diff = res.carm_from_ct @ invert(scene.carm_from_ct)
+    assert np.linalg.norm(apply(diff, [entry])[0] - entry) < 0.5
+
+
+def test_everything_masked_is_refused(ct, scene):
+    shot = FluoroShot(view=scene.views["inlet"], image_log=scene.fluoro_log["inlet"], exclude=np.ones((976, 976), bool))
+    with pytest.raises(DegenerateInput, match="usable pixels"):
+        register_ct(drr_pyramid(ct, (2, 4)), [shot], scene.carm_from_ct)
+
+
+@pytest.fixture(scope="module")
+def bone(ct):
+    pts = np.array([p for c in anatomy.CORRIDORS for p in (c.entry_mm, c.target_mm)])
+    return SurfaceDistance.bone(ct, around_mm=pts)
+
+
+@pytest.mark.parametrize("corridor", anatomy.CORRIDORS, ids=lambda c: c.name)
+def test_planned_corridors_are_breach_free(bone, corridor):
+    e, t = np.array(corridor.entry_mm), np.array(corridor.target_mm)
+    c = conformance_along(Line3D.through(e, t), bone, planned_entry_mm=e, planned_target_mm=t)
+    assert not c.breach and c.min_distance_mm > 1.5 and c.along_mm[-1] > 50
+
+
+def test_superior_ramus_shifted_4mm_is_flagged_in_every_direction(bone):
+    sr = next(c for c in anatomy.CORRIDORS if c.name == "superior-ramus")
+    e, t = np.array(sr.entry_mm), np.array(sr.target_mm)
+    d = (t - e) / np.linalg.norm(t - e)
+    u = np.cross(d, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(d, u)
+    for ang in np.radians([0, 60, 120, 180, 240, 300]):
+        shift = 4.0 * (np.cos(ang) * u + np.sin(ang) * w)
+        c = conformance_along(Line3D(point_mm=e + shift, direction=d), bone, planned_entry_mm=e, planned_target_mm=t)
+        assert c.breach and c.breach_along_mm.size > 0
+
+
+def test_axis_that_misses_bone_is_a_breach(bone):
+    e = np.array([0.0, -90.0, 0.0])  # in the soft tissue in front of the sacrum
+    c = conformance_along(Line3D(point_mm=e, direction=[1.0, 0.0, 0.0]), bone, planned_entry_mm=e, planned_target_mm=e + [30.0, 0, 0])
+    assert c.breach and c.entry_mm is None and c.min_distance_mm == float("-inf")
+
+
+def test_perturbed_cone_stays_within_its_bounds():
+    rng = np.random.default_rng(0)
+    e, t = np.zeros(3), np.array([0.0, 0.0, 80.0])
+    axes = perturbed_axes(rng, e, t, position_mm=2.0, angle_deg=3.0, n=200)
+    assert max(float(np.linalg.norm(a.point_mm - e)) for a in axes) <= 2.0 + 1e-9
+    assert max(float(np.degrees(np.arccos(a.direction[2]))) for a in axes) <= 3.0 + 1e-9
