@@ -38,33 +38,25 @@ class SurfaceDistance:
     patient_from_voxel: NDArray[np.float64]
 
     @classmethod
-    def from_mask(cls, inside: NDArray[np.bool_], patient_from_voxel: NDArray[np.float64]) -> "SurfaceDistance":
+    def from_mask(cls, inside: NDArray[np.bool_], patient_from_voxel: NDArray[np.float64], *,
+                  around_mm: ArrayLike | None = None, margin_mm: float = 40.0) -> "SurfaceDistance":
+        """Signed distance to the surface of ``inside`` (slices, rows, columns); optionally cropped to the box
+        about points ``around_mm`` (N, 3) plus ``margin_mm`` (much faster than the whole volume)."""
+        inside, a = _crop(np.asarray(inside), patient_from_voxel, around_mm, margin_mm)
         if not inside.any():
-            raise DegenerateInput("the acceptance volume is empty")
-        spacing = np.linalg.norm(np.asarray(patient_from_voxel)[:3, :3], axis=0)[::-1]  # (k, j, i) order
+            raise DegenerateInput("the acceptance volume is empty" + (" about the trajectories" if around_mm is not None else ""))
+        spacing = np.linalg.norm(np.asarray(a)[:3, :3], axis=0)[::-1]  # (k, j, i) order
         d_in = ndimage.distance_transform_edt(inside, sampling=spacing)
         d_out = ndimage.distance_transform_edt(~inside, sampling=spacing)
         # Voxel centres lie half a voxel from the surface between them.
         half = 0.5 * float(np.min(spacing))
         signed = np.where(inside, d_in - half, -(d_out - half)).astype(np.float32)
-        return cls(distance_mm=signed, patient_from_voxel=np.asarray(patient_from_voxel, dtype=np.float64))
+        return cls(distance_mm=signed, patient_from_voxel=np.asarray(a, dtype=np.float64))
 
     @classmethod
     def bone(cls, ct: Volume, *, threshold_hu: float = BONE_THRESHOLD_HU, around_mm: ArrayLike | None = None, margin_mm: float = 40.0) -> "SurfaceDistance":
-        """Bone = HU above ``threshold_hu`` with enclosed cavities filled; optionally cropped to the box about
-        points ``around_mm`` (N, 3) plus ``margin_mm`` (much faster than the whole CT)."""
-        data, a = np.asarray(ct.data), ct.patient_from_voxel
-        if around_mm is not None:
-            ijk = apply(np.linalg.inv(a), np.atleast_2d(around_mm))
-            pad = margin_mm / ct.spacing_mm
-            lo = np.maximum(np.floor(ijk.min(axis=0) - pad).astype(int), 0)
-            hi = np.minimum(np.ceil(ijk.max(axis=0) + pad).astype(int) + 1, np.asarray(ct.shape[::-1]))
-            if np.any(hi - lo < 2):
-                raise DegenerateInput("the trajectories lie outside the CT")
-            data = data[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]]
-            shift = np.eye(4)
-            shift[:3, 3] = lo
-            a = a @ shift
+        """Bone = HU above ``threshold_hu`` with enclosed cavities filled; optionally cropped as in :meth:`from_mask`."""
+        data, a = _crop(np.asarray(ct.data), ct.patient_from_voxel, around_mm, margin_mm)
         inside = ndimage.binary_fill_holes(data >= threshold_hu)
         return cls.from_mask(inside, a)
 
@@ -72,6 +64,22 @@ class SurfaceDistance:
         """Signed distance at patient points (N, 3), trilinear; far outside (-1e3) beyond the grid."""
         ijk = apply(np.linalg.inv(self.patient_from_voxel), np.atleast_2d(points_mm))
         return ndimage.map_coordinates(self.distance_mm, ijk[:, ::-1].T, order=1, mode="constant", cval=-1e3)
+
+
+def _crop(data: NDArray, patient_from_voxel: NDArray[np.float64], around_mm: ArrayLike | None, margin_mm: float) -> tuple[NDArray, NDArray[np.float64]]:
+    """``data`` (slices, rows, columns) cut to the box about ``around_mm`` + margin, with its shifted affine."""
+    a = np.asarray(patient_from_voxel, dtype=np.float64)
+    if around_mm is None:
+        return data, a
+    ijk = apply(np.linalg.inv(a), np.atleast_2d(around_mm))
+    pad = margin_mm / np.linalg.norm(a[:3, :3], axis=0)
+    lo = np.maximum(np.floor(ijk.min(axis=0) - pad).astype(int), 0)
+    hi = np.minimum(np.ceil(ijk.max(axis=0) + pad).astype(int) + 1, np.asarray(data.shape[::-1]))
+    if np.any(hi - lo < 2):
+        raise DegenerateInput("the trajectories lie outside the volume")
+    shift = np.eye(4)
+    shift[:3, 3] = lo
+    return data[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]], a @ shift
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -91,8 +91,12 @@ class DrrVolume:
 
     @classmethod
     def from_ct(cls, volume: Volume, *, downsample: int = 1, threshold_hu: float | None = None) -> "DrrVolume":
-        """Attenuation from HU; with ``threshold_hu``, only the attenuation in excess of it (e.g. 150: bone alone)."""
-        v = volume.downsampled(downsample)
+        """Attenuation from HU; with ``threshold_hu``, only the attenuation in excess of it (e.g. 150: bone alone).
+
+        ``downsample`` is the pyramid factor: every axis goes to about that many
+        times the finest voxel size (:meth:`Volume.isotropic_factors`).
+        """
+        v = volume.downsampled(volume.isotropic_factors(downsample))
         hu = np.asarray(v.data, np.float32)
         if threshold_hu is not None:
             mu = np.maximum(hu - np.float32(threshold_hu), 0.0) * np.float32(MU_WATER_PER_MM / 1000.0)

@@ -62,19 +62,33 @@ class Volume:
         idx = np.array([[i, j, k] for i in (0, ni - 1) for j in (0, nj - 1) for k in (0, nk - 1)], dtype=np.float64)
         return apply(self.patient_from_voxel, idx)
 
-    def downsampled(self, factor: int) -> "Volume":
-        """Block-mean by ``factor`` along every axis (the voxel grid's origin moves to the block centre)."""
-        if factor == 1:
+    def downsampled(self, factor: int | tuple[int, int, int]) -> "Volume":
+        """Block-mean by ``factor`` (one for every axis, or per axis i, j, k); the grid origin moves to the block centre."""
+        fi, fj, fk = (factor, factor, factor) if isinstance(factor, int) else (int(f) for f in factor)
+        if (fi, fj, fk) == (1, 1, 1):
             return self
-        nk, nj, ni = (s // factor for s in self.shape)
+        if min(fi, fj, fk) < 1:
+            raise DegenerateInput(f"downsampling factors must be >= 1, got {factor}")
+        nk, nj, ni = self.shape[0] // fk, self.shape[1] // fj, self.shape[2] // fi
         if min(nk, nj, ni) < 2:
             raise DegenerateInput(f"volume {self.shape} is too small to downsample by {factor}")
-        d = np.asarray(self.data[: nk * factor, : nj * factor, : ni * factor], dtype=np.float32)
-        d = d.reshape(nk, factor, nj, factor, ni, factor).mean(axis=(1, 3, 5), dtype=np.float32)
-        scale = np.diag([factor, factor, factor, 1.0])
+        d = np.asarray(self.data[: nk * fk, : nj * fj, : ni * fi], dtype=np.float32)
+        d = d.reshape(nk, fk, nj, fj, ni, fi).mean(axis=(1, 3, 5), dtype=np.float32)
+        scale = np.diag([fi, fj, fk, 1.0])
         shift = np.eye(4)
-        shift[:3, 3] = (factor - 1) / 2.0
-        return Volume(data=d, patient_from_voxel=self.patient_from_voxel @ shift @ scale, description=f"{self.description} /{factor}".strip())
+        shift[:3, 3] = (np.array([fi, fj, fk]) - 1) / 2.0
+        label = f"/{fi}" if fi == fj == fk else f"/{fi}x{fj}x{fk}"
+        return Volume(data=d, patient_from_voxel=self.patient_from_voxel @ shift @ scale, description=f"{self.description} {label}".strip())
+
+    def isotropic_factors(self, factor: int) -> tuple[int, int, int]:
+        """Per-axis (i, j, k) block sizes bringing every axis near ``factor`` x the finest spacing.
+
+        A 0.7 x 0.7 x 2.5 mm CT at factor 2 becomes 1.4 x 1.4 x 2.5 mm, not 1.4 x 1.4 x 5 mm:
+        thick slices are not thickened further before the in-plane axes catch up.
+        """
+        sp = self.spacing_mm
+        target = factor * float(np.min(sp))
+        return tuple(max(1, int(round(target / s))) for s in sp)  # type: ignore[return-value]
 
     def sample(self, points_mm: ArrayLike, *, order: int = 1, outside: float = -1000.0) -> NDArray[np.float64]:
         """Values at patient points (N, 3) by trilinear (``order=1``) interpolation; ``outside`` beyond the grid."""

@@ -81,9 +81,11 @@ def _surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDistance:
             cache[key] = SurfaceDistance.bone(ct, threshold_hu=float(acc.get("threshold_hu", 200.0)), around_mm=pts)
         else:
             labels = read_ct(acc["path"])
-            if labels.shape != ct.shape or not np.allclose(labels.patient_from_voxel, ct.patient_from_voxel, atol=1e-3):
-                raise CtModeError(f"{acc['path']}: label volume {labels.shape} is not on the CT's grid {ct.shape}")
-            cache[key] = SurfaceDistance.from_mask(np.isin(np.asarray(labels.data), acc["labels"]), ct.patient_from_voxel)
+            mask = np.isin(np.asarray(labels.data), acc["labels"])
+            if not mask.any():
+                raise CtModeError(f"{acc['path']}: none of the labels {acc['labels']} is present")
+            # The label volume keeps its own grid: distances are taken in patient mm, so it need not match the CT's.
+            cache[key] = SurfaceDistance.from_mask(mask, labels.patient_from_voxel, around_mm=pts)
     return cache[key]
 
 

@@ -61,3 +61,69 @@ def test_bad_requests():
         parse_views("10:120")
     with pytest.raises(SceneError, match="1..7"):
         make_scene(seed=1, n_markers=12, render=False)
+
+
+def test_cylinder_line_integrals_match_sampling():
+    """The K-wire's exact chords against a brute-force count of samples inside the cylinder."""
+    from drillnav.drivers.sim.xray import add_cylinder, pixel_rays
+    from drillnav.registration.carm import CArmView
+
+    view = CArmView.from_positioner(primary_deg=20.0, secondary_deg=-10.0, source_to_detector_mm=1164.0, source_to_isocenter_mm=624.0,
+                                    pixel_spacing_mm=(2.4, 2.4), rows=64, columns=64)
+    p0, p1, r = np.array([-40.0, -60.0, -20.0]), np.array([30.0, 50.0, 25.0]), 1.5
+    image = np.zeros((64, 64))
+    add_cylinder(image, view, p0, p1, radius_mm=r, mu=1.0)
+    src, d = pixel_rays(view)
+    t = np.arange(300.0, 950.0, 0.02)
+    a = (p1 - p0) / np.linalg.norm(p1 - p0)
+    rows, cols = np.nonzero(image > 0)
+    assert rows.size > 20  # the wire crosses the detector
+    for rr, cc in list(zip(rows, cols))[:: max(1, rows.size // 25)]:
+        pts = src + t[:, None] * d[rr, cc]
+        s = (pts - p0) @ a
+        radial = np.linalg.norm((pts - p0) - s[:, None] * a, axis=1)
+        inside = (radial <= r) & (s >= 0) & (s <= np.linalg.norm(p1 - p0))
+        assert image[rr, cc] == pytest.approx(inside.sum() * 0.02, abs=0.05)
+
+
+def test_kwire_in_fluoroscopy_rests_on_the_entry(scene):
+    chuck, tip = scene.kwire_carm()
+    axis = scene.drill_axis_carm
+    np.testing.assert_allclose(tip, axis.point_mm, atol=1e-6)  # its tip at the true axis's point nearest the entry
+    assert axis.distance_to_point(chuck) < 1e-6 and np.linalg.norm(tip - chuck) > 150
+    bare = make_scene(seed=3, views="inlet,outlet", kwire=False)
+    assert bare.kwire_carm() is None
+    view = scene.views["outlet"]
+    middle = view.project(0.5 * (chuck + tip))[0]
+    r, c = int(round(middle[1])), int(round(middle[0]))
+    assert view.contains(middle[None], margin_px=10).all()
+    extra = scene.fluoro_log["outlet"][r - 1 : r + 2, c - 1 : c + 2].mean() - bare.fluoro_log["outlet"][r - 1 : r + 2, c - 1 : c + 2].mean()
+    assert extra > 1.0  # 3 mm of steel, after beam hardening
+
+
+def test_voxel_anatomy_scene(tmp_path):
+    """A voxel CT as the patient: markers on its skin, the DRR of the full CT in the fluoroscopy, a coarser copy handed on."""
+    from drillnav.drivers.sim import anatomy
+    from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy, handed_copy
+    from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
+
+    ct = make_pelvis_ct(seed=1, voxel_mm=(2.0, 2.0, 2.0))
+    corridor = anatomy.CORRIDORS[0]
+    patient = VoxelAnatomy.from_volume(ct, corridor=corridor)
+    skin, normal = patient.skin_entry()
+    exact, exact_normal = anatomy.skin_entry(corridor)
+    assert np.linalg.norm(skin - exact) < 3.0 and normal @ exact_normal > 0.95
+    scene = make_scene(seed=8, voxel_anatomy=patient, views="inlet,outlet")
+    for t in scene.carm_from_marker.values():  # resting on the CT's skin
+        p_ct = invert(scene.carm_from_ct) @ t[:, 3]
+        assert ct.sample(p_ct[:3] - 3.0 * (invert(scene.carm_from_ct)[:3, :3] @ t[:3, 2]))[0] > -200  # body under it
+        assert ct.sample(p_ct[:3] + 3.0 * (invert(scene.carm_from_ct)[:3, :3] @ t[:3, 2]))[0] < -500  # air above it
+    img = scene.fluoro_log["outlet"]
+    bb = scene.views["outlet"].project(next(iter(scene.carm_from_marker.values()))[:3, 3])[0]
+    assert img[int(round(bb[1])), int(round(bb[0]))] > np.median(img) + 1.0
+    handed = handed_copy(ct, seed=1)
+    np.testing.assert_allclose(handed.spacing_mm, [2.5, 2.5, 2.0])
+    np.testing.assert_allclose(handed.centre_mm(), ct.centre_mm(), atol=2.0)
+    assert np.std(handed.data[handed.data > -900].astype(float)) > 0
+    with pytest.raises(ValueError, match="outside the CT"):
+        VoxelAnatomy.from_volume(ct, corridor=anatomy.Corridor(name="x", entry_mm=(0.0, 0.0, 900.0), target_mm=(0.0, 0.0, 0.0)))

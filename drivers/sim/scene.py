@@ -4,7 +4,9 @@ What is TRUE (used to render) and what the product is HANDED differ on purpose:
 the camera renders through the true lens but camera.json carries calibration
 error; the drill axis in drill.json is perturbed; BBs sit where manufacturing
 put them while markers.json holds the design; fluoroscopy images the exact
-analytic anatomy with beam hardening, scatter, quantum noise and blur.
+analytic anatomy with beam hardening, scatter, quantum noise and blur, plus
+what the CT lacks: the table, the markers and the K-wire in the drill, whose
+tip rests on the bone at the entry when the shot is taken.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ from drillnav.registration.markers import MarkerDesign, MarkerSet, default_marke
 from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform
 
 from . import anatomy
+from .ct_anatomy import VoxelAnatomy
 from .camera import render_markers
-from .xray import MU_PER_MM, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
+from .xray import MU_PER_MM, add_cylinder, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
 
 __all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
 
@@ -41,6 +44,9 @@ NAMED_VIEWS: dict[str, tuple[float, float]] = {
 # The drill axis in the camera frame: 45 mm below the optical centre, converging on the optical axis at ~225 mm.
 TRUE_DRILL_AXIS_CAMERA = Line3D(point_mm=[0.0, 45.0, 0.0], direction=[0.0, -0.2, 1.0])
 TABLE_Y_MM = (135.0, 160.0)
+# The K-wire in the drill: it leaves the chuck 60 mm along the axis from the camera's axis point; 3 mm steel.
+KWIRE_CHUCK_MM = 60.0
+KWIRE_RADIUS_MM = 1.5
 
 
 class SceneError(ValueError):
@@ -82,6 +88,20 @@ class Scene:
     view_angles: dict[str, tuple[float, float]]
     fluoro_log: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     camera_image: NDArray[np.uint8] | None = None
+    kwire: bool = True                         # the K-wire is in the drill (and in the fluoroscopy)
+    voxel_anatomy: VoxelAnatomy | None = None  # a real CT as the patient (None: the analytic pelvis)
+    table_y_mm: tuple[float, float] = TABLE_Y_MM
+
+    def kwire_carm(self, carm_from_drill: NDArray[np.float64] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """The K-wire as (chuck end, tip) in C (mm), its tip at the true axis's point nearest the corridor entry."""
+        if not self.kwire:
+            return None
+        axis = TRUE_DRILL_AXIS_CAMERA.transformed(self.carm_from_drill if carm_from_drill is None else carm_from_drill)
+        tip = axis.closest_point(self.corridor_entry_carm_mm)
+        s_tip = float((tip - axis.point_mm) @ axis.direction)
+        if s_tip <= KWIRE_CHUCK_MM + 10.0:
+            return None  # the drill is too close for a wire to fit: none in the image
+        return np.asarray(axis.at(KWIRE_CHUCK_MM), dtype=np.float64).reshape(3), np.asarray(tip, dtype=np.float64).reshape(3)
 
     @property
     def drill_axis_carm(self) -> Line3D:
@@ -121,8 +141,8 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.float64]]:
-    centre_v, _ = anatomy.skin_entry(corridor)
+def _place_on_skin(rng, ids, carm_from_ct, skin_at) -> dict[int, NDArray[np.float64]]:
+    """Markers round a 50 mm circle, each resting on the skin: ``skin_at(radius_mm, angle_rad) -> (point, normal)`` in V."""
     n = len(ids)
     radius = 50.0 if n > 1 else 0.0
     phase = rng.uniform(0, 2 * np.pi)
@@ -130,7 +150,10 @@ def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.flo
     for k, marker_id in enumerate(ids):
         a = phase + 2 * np.pi * k / n + rng.normal(scale=0.08)
         r = radius + rng.normal(scale=2.0)
-        p, normal = anatomy.skin_point(centre_v[0] + r * np.cos(a), centre_v[2] + r * np.sin(a))
+        try:
+            p, normal = skin_at(r, a)
+        except ValueError as exc:
+            raise SceneError(f"marker {marker_id} cannot be placed on the skin {r:.0f} mm from the entry: {exc}") from None
         normal = Rotation.from_rotvec(np.radians(5.0) * _unit(rng.normal(size=3))).apply(normal)
         z = _unit(normal)
         x = _unit(np.cross([0.0, 0.0, 1.0], z))
@@ -139,6 +162,21 @@ def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.flo
         ct_from_marker = make_transform(spin @ np.stack([x, y, z], axis=1), p + 1.0 * z)  # resting on the drape
         poses[marker_id] = carm_from_ct @ ct_from_marker
     return poses
+
+
+def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.float64]]:
+    """On the analytic body's anterior skin, about the corridor's skin entry."""
+    centre_v, _ = anatomy.skin_entry(corridor)
+    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: anatomy.skin_point(centre_v[0] + r * np.cos(a), centre_v[2] + r * np.sin(a)))
+
+
+def _place_markers_ct(rng, ids, carm_from_ct, patient: VoxelAnatomy) -> dict[int, NDArray[np.float64]]:
+    """On a real CT's skin about the trajectory's skin entry, each cast onto the skin along the trajectory."""
+    centre, _ = patient.skin_entry()
+    d = anatomy.corridor_direction(patient.corridor)
+    u = _unit(np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0.0, 0.0]))
+    v = np.cross(d, u)
+    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: patient.skin_along(centre + r * (np.cos(a) * u + np.sin(a) * v) + 40.0 * d, -d))
 
 
 def _perturbed_camera(rng, camera: PinholeCamera) -> PinholeCamera:
@@ -156,18 +194,25 @@ def _perturbed_axis(rng, axis: Line3D) -> Line3D:
     return Line3D(point_mm=axis.point_mm + rng.normal(scale=0.1, size=3), direction=d)
 
 
-def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dose_quanta: float = 12000.0) -> NDArray[np.float32]:
-    """Measured log attenuation (rows, columns) of one shot, with the twin's physics."""
+def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dose_quanta: float = 12000.0,
+                  carm_from_drill: NDArray[np.float64] | None = None) -> NDArray[np.float32]:
+    """Measured log attenuation (rows, columns) of one shot, with the twin's physics (the K-wire where the drill is)."""
     view = scene.views[view_name]
     rays = pixel_rays(view)
-    line = np.zeros((view.rows, view.columns))
-    add_ellipsoids(line, view, anatomy.pelvis_ellipsoids_carm(scene.carm_from_ct), rays=rays)
-    add_slab(line, view, y_min_mm=TABLE_Y_MM[0], y_max_mm=TABLE_Y_MM[1], mu=MU_PER_MM["table"], rays=rays)
+    if scene.voxel_anatomy is not None:
+        line = scene.voxel_anatomy.line_integrals(view, scene.carm_from_ct)
+    else:
+        line = np.zeros((view.rows, view.columns))
+        add_ellipsoids(line, view, anatomy.pelvis_ellipsoids_carm(scene.carm_from_ct), rays=rays)
+    add_slab(line, view, y_min_mm=scene.table_y_mm[0], y_max_mm=scene.table_y_mm[1], mu=MU_PER_MM["table"], rays=rays)
     for marker_id, pose in scene.carm_from_marker.items():
         design = scene.manufactured[marker_id]
         centres = apply(pose, design.bb_centers_mm)
         add_spheres(line, view, centres, design.bb_diameters_mm / 2, MU_PER_MM["tungsten"])
         add_ring(line, view, pose, radius_mm=design.ring_radius_mm, wire_diameter_mm=design.ring_wire_diameter_mm, mu=MU_PER_MM["tungsten"])
+    wire = scene.kwire_carm(carm_from_drill)
+    if wire is not None:
+        add_cylinder(line, view, wire[0], wire[1], radius_mm=KWIRE_RADIUS_MM, mu=MU_PER_MM["steel"], rays=rays)
     # Beam hardening: a polyenergetic beam attenuates less per mm the more it has crossed.
     hardened = 6.0 * np.log1p(line / 6.0)
     primary = dose_quanta * np.exp(-hardened)
@@ -187,8 +232,13 @@ def make_scene(
     image_size: tuple[int, int] = (1280, 720),
     render: bool = True,
     bb_manufacturing_sigma_mm: float = 0.05,
+    kwire: bool = True,
+    voxel_anatomy: VoxelAnatomy | None = None,
 ) -> Scene:
-    """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only)."""
+    """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only).
+
+    ``voxel_anatomy``: a real CT as the patient, with its planned trajectory (``corridor`` is then unused).
+    """
     rng = np.random.default_rng(seed)
     design_set = default_marker_set()
     if marker_ids is None:
@@ -196,19 +246,31 @@ def make_scene(
             raise SceneError(f"--markers must be 1..7 (markers must fit the fluoroscopy field), got {n_markers}")
         marker_ids = sorted(rng.choice(len(design_set.markers), size=n_markers, replace=False).tolist())
     used = design_set.subset(marker_ids)
-    corridors = {c.name: c for c in anatomy.CORRIDORS}
-    if corridor not in corridors:
-        raise SceneError(f"unknown corridor '{corridor}': one of {', '.join(corridors)}")
-    target = corridors[corridor]
+    if voxel_anatomy is not None:
+        target = voxel_anatomy.corridor
+    else:
+        corridors = {c.name: c for c in anatomy.CORRIDORS}
+        if corridor not in corridors:
+            raise SceneError(f"unknown corridor '{corridor}': one of {', '.join(corridors)}")
+        target = corridors[corridor]
     view_angles = parse_views(views) if isinstance(views, str) else dict(views)
 
     # Patient on the table: the entry site near the isocentre, a few degrees and mm off.
-    skin, _ = anatomy.skin_entry(target)
+    try:
+        skin, _ = voxel_anatomy.skin_entry() if voxel_anatomy is not None else anatomy.skin_entry(target)
+    except ValueError as exc:
+        raise SceneError(f"the trajectory {target.name} does not reach the skin: {exc}") from None
     centre_v = 0.8 * skin + 0.2 * np.asarray(target.entry_mm)
     carm_from_ct = from_rotvec(np.radians(2.0) * rng.normal(size=3))
     carm_from_ct[:3, 3] = -carm_from_ct[:3, :3] @ centre_v + rng.normal(scale=3.0, size=3)
 
-    poses = _place_markers(rng, marker_ids, carm_from_ct, target)
+    if voxel_anatomy is not None:
+        poses = _place_markers_ct(rng, marker_ids, carm_from_ct, voxel_anatomy)
+        back = voxel_anatomy.posterior_extent_mm(carm_from_ct)
+        table_y = (back + 2.0, back + 27.0)  # the table top just under the patient's back
+    else:
+        poses = _place_markers(rng, marker_ids, carm_from_ct, target)
+        table_y = TABLE_Y_MM
     manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}
     true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=76.0, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
     carm_from_drill = _drill_pose(rng, target, carm_from_ct, offset_mm=3.0, tilt_deg=3.0, standoff_mm=290.0)
@@ -226,6 +288,9 @@ def make_scene(
         corridor=target,
         views=scene_views,
         view_angles=view_angles,
+        kwire=kwire,
+        voxel_anatomy=voxel_anatomy,
+        table_y_mm=table_y,
     )
     if not render:
         return scene

@@ -1,4 +1,4 @@
-"""Analytic X-ray line integrals for the twin: ellipsoids, spheres (BBs), the wire ring, the table.
+"""Analytic X-ray line integrals for the twin: ellipsoids, spheres (BBs), the wire ring, the K-wire, the table.
 
 All functions add ``mu * chord_length_mm`` (dimensionless line integrals) into a
 detector image (rows, columns) for a :class:`CArmView`. Shapes are given in
@@ -13,10 +13,10 @@ from numpy.typing import NDArray
 
 from drillnav.registration.carm import CArmView
 
-__all__ = ["add_ellipsoids", "add_spheres", "add_ring", "add_slab", "pixel_rays", "MU_PER_MM"]
+__all__ = ["add_ellipsoids", "add_spheres", "add_ring", "add_cylinder", "add_slab", "pixel_rays", "MU_PER_MM"]
 
 # Linear attenuation at ~60 keV effective (1/mm).
-MU_PER_MM = {"soft": 0.020, "cancellous": 0.030, "cortical": 0.055, "tungsten": 7.0, "table": 0.008}
+MU_PER_MM = {"soft": 0.020, "cancellous": 0.030, "cortical": 0.055, "tungsten": 7.0, "steel": 0.95, "table": 0.008}
 
 
 def pixel_rays(view: CArmView, *, supersample: int = 1) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -123,6 +123,47 @@ def add_ring(
     # Each sphere holds 4/3 pi rho^3; the tube holds pi rho^2 per mm.
     scale = np.pi * rho**2 * (2 * np.pi * radius_mm / n) / (4.0 / 3.0 * np.pi * rho**3)
     add_spheres(image, view, centres, np.full(n, rho), mu * scale, supersample=2)
+
+
+def add_cylinder(
+    image: NDArray[np.float64],
+    view: CArmView,
+    start_mm: NDArray[np.float64],
+    end_mm: NDArray[np.float64],
+    *,
+    radius_mm: float,
+    mu: float,
+    rays: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+) -> None:
+    """Add a solid cylinder (a K-wire) from ``start_mm`` to ``end_mm`` (frame C) by exact chord lengths.
+
+    Each ray's chord through the infinite cylinder is clipped to the slab
+    between the two end planes, so the flat ends are imaged exactly.
+    """
+    src, d = rays if rays is not None else pixel_rays(view)
+    p0, p1 = np.asarray(start_mm, float), np.asarray(end_mm, float)
+    length = float(np.linalg.norm(p1 - p0))
+    a = (p1 - p0) / length
+    w = src - p0
+    da = d @ a
+    d_perp = d - da[..., None] * a
+    w_perp = w - (w @ a) * a
+    qa = np.einsum("...i,...i->...", d_perp, d_perp)
+    qb = 2.0 * (d_perp @ w_perp)
+    qc = w_perp @ w_perp - radius_mm**2
+    disc = qb * qb - 4.0 * qa * qc
+    ok = (disc > 0) & (qa > 1e-12)
+    root = np.sqrt(np.where(ok, disc, 0.0))
+    qa_safe = np.where(ok, qa, 1.0)
+    lo, hi = (-qb - root) / (2 * qa_safe), (-qb + root) / (2 * qa_safe)
+    # Along the axis: s(t) = w.a + t d.a must lie in [0, length].
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (0.0 - w @ a) / da
+        t1 = (length - w @ a) / da
+    parallel = np.abs(da) < 1e-12
+    lo = np.where(parallel, lo, np.maximum(lo, np.minimum(t0, t1)))
+    hi = np.where(parallel, hi, np.minimum(hi, np.maximum(t0, t1)))
+    image += mu * np.where(ok, np.clip(hi - lo, 0.0, None), 0.0)
 
 
 def add_slab(image: NDArray[np.float64], view: CArmView, *, y_min_mm: float, y_max_mm: float, mu: float,

@@ -1,0 +1,121 @@
+"""A real CT as the twin's anatomy (``drillnav sim scene --anatomy``).
+
+The rule is the same as for the analytic pelvis: the twin images a finer
+truth than the product is given. Fluoroscopy integrates the CT as read, at
+its full resolution with a fine ray step; the product is handed a copy
+resampled onto a coarser in-plane grid, blurred and with added scanner noise.
+
+Everything here is in the CT's own patient frame V (LPS, mm). The skin is
+where the HU falls below ``SKIN_HU`` marching outwards from the body. A real
+CT has no built-in plan: the trajectory comes from a plan file or entry and
+target points, as a surgeon's planning would give it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from drillnav.registration.carm import CArmView
+from drillnav.registration.drr import DrrVolume, render_drr
+from drillnav.registration.errors import DegenerateInput
+from drillnav.registration.volume import Volume
+
+from .anatomy import Corridor
+
+__all__ = ["VoxelAnatomy", "handed_copy", "SKIN_HU"]
+
+SKIN_HU = -400.0  # body / air boundary
+RENDER_STEP_MM = 0.35
+
+
+def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return v / np.linalg.norm(v)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class VoxelAnatomy:
+    """A CT volume standing in for the patient: the truth the twin's fluoroscopy images."""
+
+    volume: Volume
+    corridor: Corridor
+    truth_mu: DrrVolume
+
+    @classmethod
+    def from_volume(cls, volume: Volume, *, corridor: Corridor) -> "VoxelAnatomy":
+        """``corridor``: the planned trajectory the drill aims along (a real CT has no built-in plan)."""
+        c = corridor
+        for label, p in (("entry", c.entry_mm), ("target", c.target_mm)):
+            if not volume.contains(np.asarray(p, dtype=np.float64))[0]:
+                raise DegenerateInput(f"the corridor's {label} {tuple(round(v, 1) for v in p)} mm lies outside the CT ({volume.description})")
+        return cls(volume=volume, corridor=c, truth_mu=DrrVolume.from_ct(volume))
+
+    def line_integrals(self, view: CArmView, carm_from_ct: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step."""
+        return render_drr(self.truth_mu, view, carm_from_ct, step_mm=RENDER_STEP_MM).astype(np.float64)
+
+    def skin_along(self, inside_mm: NDArray[np.float64], outward: NDArray[np.float64], *, max_mm: float = 400.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """March from ``inside_mm`` along ``outward`` to the skin: the skin point (3,) and outward normal (3,)."""
+        s = np.arange(0.0, max_mm, 0.5)
+        pts = np.asarray(inside_mm, dtype=np.float64) + s[:, None] * _unit(np.asarray(outward, dtype=np.float64))
+        hu = self.volume.sample(pts)
+        inside = hu > SKIN_HU
+        if not inside[0]:
+            raise DegenerateInput(f"{np.round(inside_mm, 1).tolist()} mm is not inside the body of the CT")
+        out = np.flatnonzero(~inside)
+        if out.size == 0:
+            raise DegenerateInput(f"no skin within {max_mm:.0f} mm of {np.round(inside_mm, 1).tolist()} mm along {np.round(outward, 2).tolist()}")
+        skin = pts[out[0]]
+        # Normal: minus the HU gradient, by central differences over 2 mm.
+        h = 2.0
+        grad = np.array([(self.volume.sample(skin + h * e)[0] - self.volume.sample(skin - h * e)[0]) / (2 * h) for e in np.eye(3)])
+        normal = -grad if np.linalg.norm(grad) > 1e-6 else -np.asarray(outward, dtype=np.float64)
+        normal = _unit(normal)
+        if normal @ outward < 0.2:  # a noisy gradient: fall back to the marching direction
+            normal = _unit(np.asarray(outward, dtype=np.float64))
+        return skin, normal
+
+    def skin_entry(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Where the trajectory, extended back from its entry, leaves the skin: point and normal."""
+        d = _unit(np.asarray(self.corridor.target_mm, dtype=np.float64) - np.asarray(self.corridor.entry_mm, dtype=np.float64))
+        return self.skin_along(np.asarray(self.corridor.entry_mm, dtype=np.float64), -d)
+
+    def posterior_extent_mm(self, carm_from_ct: NDArray[np.float64]) -> float:
+        """The largest y in C of the body (where the table goes)."""
+        body = np.argwhere(np.asarray(self.volume.data[:, ::4, ::4]) > SKIN_HU)
+        if body.size == 0:
+            raise DegenerateInput("the CT holds no body (nothing above -400 HU)")
+        ijk = np.stack([body[:, 2] * 4, body[:, 1] * 4, body[:, 0]], axis=1).astype(np.float64)
+        pts = ijk @ self.volume.patient_from_voxel[:3, :3].T + self.volume.patient_from_voxel[:3, 3]
+        return float(np.max(pts @ carm_from_ct[1, :3] + carm_from_ct[1, 3]))
+
+
+def handed_copy(volume: Volume, *, seed: int, voxel_scale: float = 1.25, noise_hu: float = 15.0, blur_mm: float = 0.6) -> Volume:
+    """The CT the product is given: blurred, resampled in-plane by ``voxel_scale``, with scanner noise (int16 HU)."""
+    if voxel_scale < 1.0:
+        raise DegenerateInput(f"the handed CT must not be finer than the truth: voxel scale {voxel_scale} < 1")
+    spacing = volume.spacing_mm  # (i, j, k) = (column, row, slice)
+    data = np.asarray(volume.data, dtype=np.float32)
+    if blur_mm > 0:
+        data = ndimage.gaussian_filter(data, sigma=[blur_mm / spacing[2], blur_mm / spacing[1], blur_mm / spacing[0]])
+    nk, nj, ni = data.shape
+    nj2, ni2 = int(nj / voxel_scale), int(ni / voxel_scale)
+    # New voxel centres in old voxel coordinates: c_new * scale + (scale - 1) / 2 keeps the field centred.
+    jj = np.arange(nj2) * voxel_scale + (voxel_scale - 1) / 2
+    ii = np.arange(ni2) * voxel_scale + (voxel_scale - 1) / 2
+    out = np.empty((nk, nj2, ni2), np.float32)
+    grid_j, grid_i = np.meshgrid(jj, ii, indexing="ij")
+    for k in range(nk):
+        out[k] = ndimage.map_coordinates(data[k], [grid_j, grid_i], order=1, mode="nearest")
+    rng = np.random.default_rng([seed, 11])
+    body = out > -900
+    out[body] += rng.normal(scale=noise_hu, size=int(body.sum())).astype(np.float32)
+    scale = np.diag([voxel_scale, voxel_scale, 1.0, 1.0])
+    shift = np.eye(4)
+    shift[:2, 3] = (voxel_scale - 1) / 2
+    a = volume.patient_from_voxel @ shift @ scale
+    return Volume(data=np.clip(np.rint(out), -1024, 8191).astype(np.int16), patient_from_voxel=a,
+                  description=f"{volume.description} (twin copy: {voxel_scale:g}x in-plane voxels, {noise_hu:g} HU noise)")
