@@ -1,4 +1,4 @@
-"""The REST API (FastAPI): health, status, current registration, recordings, twin C-arm shots.
+"""The REST API (FastAPI): health, status, current registration, recordings, twin C-arm shots, calibration jobs.
 
 Every changing endpoint needs ``Authorization: Bearer <token>``.
 """
@@ -10,6 +10,8 @@ from typing import Annotated, Any, Protocol
 
 from fastapi import Depends, FastAPI, Header, HTTPException, status
 from pydantic import BaseModel, Field
+
+from .api_calibration import calibration_router
 
 __all__ = ["create_app", "ServiceState"]
 
@@ -87,6 +89,11 @@ def create_app(*, state: ServiceState) -> FastAPI:
             return RecordingPublic(name=name, files=state.stop_recording(name))
         except KeyError as exc:
             raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc.args[0])) from None
+
+    # Optional: only a service that runs calibration jobs offers them.
+    calibration_jobs = getattr(state, "calibration_jobs", None)
+    if calibration_jobs is not None:
+        app.include_router(calibration_router(calibration_jobs, require_token))
 
     @app.post("/carm/shots", status_code=status.HTTP_201_CREATED, dependencies=authorized)
     def shoot(body: ShotCreate) -> dict[str, str]:

@@ -20,6 +20,7 @@ from drillnav.schemas.topics import TOPICS, key
 
 from .api import create_app
 from .bus import open_session
+from .calibration_jobs import CalibrationJobs
 from .node import RegistrationNode
 from .recorder import Recorder
 from .settings import Settings, SettingsError
@@ -40,6 +41,9 @@ class Daemon:
         self._finished: dict[str, list[str]] = {}
         self.errors: list[str] = []
         self.carm = None
+        self.calibration_jobs: CalibrationJobs | None = None
+        self._frame_lock = threading.Condition()
+        self._latest_frame: tuple[int, Any] | None = None
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self) -> None:
@@ -64,6 +68,10 @@ class Daemon:
             camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
             self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps)
         self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis)
+        cal = s.calibration.folder
+        self.calibration_jobs = CalibrationJobs(
+            work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
+            active_camera_path=s.camera.calibration or cal / "camera.json", active_drill_path=s.camera.drill_calibration or cal / "drill.json")
         self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
         self.scp = None
         if s.dicom.scp_enabled:
@@ -94,6 +102,8 @@ class Daemon:
             t.join(timeout=5)
         if getattr(self, "scp", None) is not None:
             self.scp.__exit__(None, None, None)
+        if self.calibration_jobs is not None:
+            self.calibration_jobs.close()
         if hasattr(self, "node"):
             self.node.close()
         for name in list(self._recorders):
@@ -115,6 +125,9 @@ class Daemon:
             with self.camera_device as cam:
                 while not self._stop.is_set():
                     frame = cam.read()
+                    with self._frame_lock:
+                        self._latest_frame = (frame.stamp_ns, frame.image)
+                        self._frame_lock.notify_all()
                     pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
         except DrillnavError as exc:
             self.errors.append(str(exc))
@@ -136,6 +149,24 @@ class Daemon:
                     self.session.put(key(self.prefix, "fluoro_shot"), msg.fluoro_shot(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file))
                     self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
 
+    # -- calibration jobs ------------------------------------------------------------------
+    def _grab_frame(self, timeout_s: float = 2.0) -> tuple[int, Any]:
+        """The next camera frame after the call (for live calibration captures)."""
+        with self._frame_lock:
+            before = self._latest_frame
+            if not self._frame_lock.wait_for(lambda: self._latest_frame is not before, timeout=timeout_s):
+                raise DrillnavError(f"no camera frame for {timeout_s:.0f} s: is the camera connected?" + (f" ({self.errors[-1]})" if self.errors else ""))
+            assert self._latest_frame is not None
+            return self._latest_frame
+
+    def _install_calibration(self, kind: str, path) -> None:
+        """A calibration installed through the API becomes the node's at once."""
+        if kind == "camera":
+            self.node.camera = read_camera_calibration(path)
+        else:
+            self.node.axis_drill = read_drill_calibration(path)
+        self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "info", "message": f"{kind} calibration installed from {path}"}))
+
     # -- ServiceState for the API ------------------------------------------------------------
     def status(self) -> dict[str, Any]:
         st = self.node.status()
@@ -152,7 +183,8 @@ class Daemon:
     def start_recording(self, name: str) -> list[str]:
         if name in self._recorders:
             raise KeyError(f"recording '{name}' is already running")
-        rec = Recorder(session=self.session, prefix=self.prefix, folder=self.settings.recording.folder, name=name, rotate_bytes=self.settings.recording.rotate_mb * 1024 * 1024)
+        rec = Recorder(session=self.session, prefix=self.prefix, folder=self.settings.recording.folder, name=name, rotate_bytes=self.settings.recording.rotate_mb * 1024 * 1024,
+                       rotate_seconds=self.settings.recording.rotate_minutes * 60.0)
         self._recorders[name] = rec
         return [str(p) for p in rec.files]
 

@@ -3,7 +3,7 @@
 Chunks are small and the file is flushed after every message (the writer only
 emits bytes when a chunk completes), so a killed process leaves a file whose
 every complete chunk is on disk; a clean stop writes the summary
-and index. Files rotate by size.
+and index. Files rotate by size and by time.
 """
 
 from __future__ import annotations
@@ -28,11 +28,14 @@ _PROTO = {"foxglove.CompressedImage": CompressedImage}
 class Recorder:
     """Subscribes to ``<prefix>/**`` on ``session`` and writes MCAP files into ``folder`` named ``<name>-<UTC>-<n>.mcap``."""
 
-    def __init__(self, *, session: zenoh.Session, prefix: str, folder: Path, name: str, chunk_size: int = 256 * 1024, rotate_bytes: int = 512 * 1024 * 1024) -> None:
+    def __init__(self, *, session: zenoh.Session, prefix: str, folder: Path, name: str, chunk_size: int = 256 * 1024,
+                 rotate_bytes: int = 512 * 1024 * 1024, rotate_seconds: float = 3600.0) -> None:
         if not name.replace("-", "").replace("_", "").isalnum():
             raise ValueError(f"recording name '{name}' may hold only letters, digits, '-' and '_'")
         self.prefix, self.folder, self.name = prefix, Path(folder), name
-        self.chunk_size, self.rotate_bytes = chunk_size, rotate_bytes
+        if rotate_bytes <= 0 or rotate_seconds <= 0:
+            raise ValueError("rotate_bytes and rotate_seconds must be positive")
+        self.chunk_size, self.rotate_bytes, self.rotate_ns = chunk_size, rotate_bytes, int(rotate_seconds * 1e9)
         self.folder.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         self._index = 0
@@ -43,7 +46,7 @@ class Recorder:
         self._sub = session.declare_subscriber(f"{prefix}/**", self._on_sample)
 
     def _open_file(self) -> None:
-        stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
         path = self.folder / f"{self.name}-{stamp}-{self._index}.mcap"
         self._index += 1
         self._fp = open(path, "wb")
@@ -52,6 +55,7 @@ class Recorder:
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._file_bytes = 0
+        self._file_started_ns = time.monotonic_ns()
         self.files.append(path)
 
     def _channel(self, key_expr: str) -> int:
@@ -84,7 +88,7 @@ class Recorder:
             self.messages += 1
             self.bytes += len(data)
             self._file_bytes += len(data)
-            if self._file_bytes >= self.rotate_bytes:
+            if self._file_bytes >= self.rotate_bytes or time.monotonic_ns() - self._file_started_ns >= self.rotate_ns:
                 self._finish_file()
                 self._open_file()
 

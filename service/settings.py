@@ -59,6 +59,11 @@ class RecordingSettings(_Section):
     folder: Path = Path("var/recordings")
     record_on_start: bool = True
     rotate_mb: int = Field(512, ge=1)
+    rotate_minutes: float = Field(60.0, gt=0, description="a new file at least this often")
+
+
+class CalibrationSettings(_Section):
+    folder: Path = Path("var/calibration")  # jobs and their results; the active files when camera.* names none
 
 
 class TwinSettings(_Section):
@@ -77,6 +82,7 @@ class Settings(BaseSettings):
     dicom: DicomSettings = Field(default_factory=DicomSettings)
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     twin_scene: TwinSettings = Field(default_factory=TwinSettings)
+    calibration: CalibrationSettings = Field(default_factory=CalibrationSettings)
 
 
 class SettingsError(DrillnavError):

@@ -97,6 +97,26 @@ with open_session(listen=[ep]) as a:
 """
 
 
+def test_recorder_rotates_by_time(tmp_path):
+    ep = endpoints()
+    with open_session(listen=[ep]) as a, open_session(connect=[ep]) as b:
+        rec = Recorder(session=b, prefix="drillnav", folder=tmp_path, name="rot", rotate_seconds=0.4)
+        time.sleep(0.5)
+        for i in range(30):
+            a.put(key("drillnav", "axis_carm"), msg.encode_json({"stamp_ns": i}))
+            time.sleep(0.05)
+        time.sleep(0.3)
+        files = rec.close()
+    assert len(files) >= 3 and len(set(files)) == len(files)
+    total = 0
+    for path in files:  # every rotated file is finished: summary and index written
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            assert reader.get_summary() is not None
+            total += sum(1 for _ in reader.iter_messages())
+    assert total == 30
+
+
 def test_sigkilled_recorder_leaves_a_readable_file(tmp_path):
     ep = endpoints()
     child = subprocess.Popen([sys.executable, "-c", RECORD_CHILD, ep, str(tmp_path)], stdout=subprocess.PIPE, text=True)
@@ -218,6 +238,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     cfg.write_text(
         f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18082\ntoken = "test-token-1"\n'
         f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = 11140\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\n'
+        f'[calibration]\nfolder = "{tmp_path / "cal"}"\n'
     )
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -243,6 +264,16 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         while time.monotonic() - t0 < 5.0 and httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] == before:
             time.sleep(0.1)
         assert httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] > before
+        # A live calibration job captures the daemon's own camera frames; the twin's field holds no board, so it fails and says why.
+        auth = {"Authorization": "Bearer test-token-1"}
+        r = httpx.post("http://127.0.0.1:18082/calibration/jobs", data={"kind": "camera", "board": "checkerboard:9x6:25mm", "live_seconds": "1", "live_fps": "5"}, headers=auth, timeout=10)
+        assert r.status_code == 202, r.text
+        job_url = f"http://127.0.0.1:18082/calibration/jobs/{r.json()['id']}"
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 30 and (job := httpx.get(job_url, timeout=5).json())["state"] not in ("succeeded", "failed", "cancelled"):
+            time.sleep(0.2)
+        assert job["state"] == "failed" and job["inputs"] >= 3 and "not found in any" in job["message"], job
+        assert httpx.post(job_url + "/install", headers=auth, timeout=5).status_code == 409
         # A corrupt DICOM dropped in the watched folder is refused with an event, and nothing stops.
         (tmp_path / "in" / "broken.dcm").write_bytes(b"garbage" * 10)
         time.sleep(2.0)
