@@ -9,6 +9,8 @@ The kernel is compiled by numba (``parallel=True``, one detector row per
 task): a per-pixel loop in LLVM-compiled code reaches the speed targets on
 two CPU cores, which numpy's whole-array gathers cannot (they materialise
 every sample point), and it needs no compiler or GPU on the user's machine.
+It releases the GIL (``nogil``), so the daemon's camera loop runs on while a
+CT registration renders.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from .volume import MU_WATER_PER_MM, Volume, hu_to_mu
 __all__ = ["DrrVolume", "render_drr", "drr_pyramid"]
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
+@numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False, nogil=True)
 def _drr_kernel(mu, origin_vox, vox_from_pix, carm_from_pix, step_mm, row0, col0, stride, out):  # pragma: no cover - compiled
     nk, nj, ni = mu.shape
     rows, cols = out.shape

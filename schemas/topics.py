@@ -33,13 +33,14 @@ TOPICS: dict[str, Topic] = {
     "fluoro_image": Topic("fluoro/*/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "fluoroscopy views for display, PNG"),
     "fluoro_markers": Topic("fluoro/markers", "drillnav.FluoroMarkers", Encoding.JSON, "marker poses in C from the last registration"),
     "axis_carm": Topic("axis/carm", "drillnav.DrillAxis", Encoding.JSON, "the drill axis in frame C with its predicted error, one per camera frame"),
+    "axis_ct": Topic("axis/ct", "drillnav.DrillAxis", Encoding.JSON, "video-CT mode: the drill axis in the CT frame V with conformance to the nearest planned trajectory, one per camera frame once the CT is registered"),
     "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz"),
     "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
     "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
     "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
 }
 
-ALIASES = {"drill-axis": "axis_carm", "status": "status", "events": "events", "markers": "camera_markers", "shots": "fluoro_shot"}
+ALIASES = {"drill-axis": "axis_carm", "drill-axis-ct": "axis_ct", "status": "status", "events": "events", "markers": "camera_markers", "shots": "fluoro_shot"}
 
 
 def key(prefix: str, name: str, view: str | None = None) -> str:

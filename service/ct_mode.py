@@ -26,7 +26,7 @@ from drillnav.registration.volume import Volume
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.scene_files import read_plan
 
-__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "CtModeError"]
+__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "acceptance_surface", "shots_for_ct", "CtModeError"]
 
 
 MAX_ANGLE_TO_JUDGE_DEG = 45.0
@@ -61,18 +61,25 @@ def initial_carm_from_ct(ct: Volume, *, at_isocentre_mm: NDArray[np.float64] | N
     return make_transform(np.eye(3), -p)
 
 
-def register_ct_to_fluoro(ct: Volume, images, detections, *, at_isocentre_mm=None, search_mm: float = 120.0, seed: int = 0) -> CtRegistration:
-    """Masks markers (detected rings and BBs) and other metal out of each view, then registers from the initial guess."""
+def shots_for_ct(views_images_detections) -> list[FluoroShot]:
+    """``(view, image_log, detections | None)`` triples as shots with markers (detected rings and BBs) and other metal masked."""
     shots = []
-    for img, det in zip(images, detections):
-        exclude = metal_mask(img.pixels_log)
+    for view, image_log, det in views_images_detections:
+        exclude = metal_mask(image_log)
         if det is not None:
-            exclude |= marker_mask(img.pixels_log.shape, det)
-        shots.append(FluoroShot(view=img.view, image_log=img.pixels_log, exclude=exclude))
+            exclude |= marker_mask(image_log.shape, det)
+        shots.append(FluoroShot(view=view, image_log=image_log, exclude=exclude))
+    return shots
+
+
+def register_ct_to_fluoro(ct: Volume, images, detections, *, at_isocentre_mm=None, search_mm: float = 120.0, seed: int = 0) -> CtRegistration:
+    """Masks markers and other metal out of each view, then registers from the initial guess."""
+    shots = shots_for_ct([(img.view, img.pixels_log, det) for img, det in zip(images, detections)])
     return register_ct(ct, shots, initial_carm_from_ct(ct, at_isocentre_mm=at_isocentre_mm), search_mm=search_mm, seed=seed)
 
 
-def _surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDistance:
+def acceptance_surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDistance:
+    """The signed distance to ``entry``'s acceptance volume (bone threshold or labels), cached by its definition."""
     acc = entry.acceptance
     key = (acc["type"], acc.get("threshold_hu"), acc.get("path"), tuple(acc.get("labels", ())))
     if key not in cache:
@@ -122,7 +129,7 @@ def axis_in_ct_report(
         if angle > MAX_ANGLE_TO_JUDGE_DEG:
             row.update(evaluated=False, reason=f"the axis is {angle:.0f} deg off this trajectory (judged within {MAX_ANGLE_TO_JUDGE_DEG:.0f} deg)")
         else:
-            c = conformance_along(axis_ct, _surface(ct, entry, cache), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
+            c = conformance_along(axis_ct, acceptance_surface(ct, entry, cache), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
             row.update(evaluated=True, breach=c.breach, min_clearance_mm=c.min_distance_mm if np.isfinite(c.min_distance_mm) else None,
                        kwire_radius_mm=c.kwire_radius_mm, entry_ct_mm=None if c.entry_mm is None else [float(v) for v in c.entry_mm],
                        breach_at_mm=[float(v) for v in c.breach_along_mm[:50]],

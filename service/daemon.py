@@ -6,6 +6,7 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import uvicorn
 
 from drillnav.drivers.fluoro_dicom import read_fluoro
@@ -67,7 +68,7 @@ class Daemon:
             marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
             camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
             self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps)
-        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis)
+        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis, ct_tracker=self._ct_tracker())
         cal = s.calibration.folder
         self.calibration_jobs = CalibrationJobs(
             work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
@@ -88,6 +89,34 @@ class Daemon:
         if self.carm is not None:
             for view in self.carm.scene.views:
                 self.carm.shoot(view)
+
+    def _ct_tracker(self):
+        """The live video-CT mode: from ``[ct] volume`` (and ``plan``), or the twin's own CT; None when off."""
+        from drillnav.drivers.ct_volume import read_ct
+
+        from .ct_mode import PlanEntry, load_plan
+        from .ct_tracker import CtTracker
+
+        s = self.settings
+        if s.ct.volume is not None:
+            ct, plan = read_ct(s.ct.volume), (load_plan(s.ct.plan) if s.ct.plan else [])
+        elif s.twin and s.twin_scene.ct_voxel_mm:
+            from drillnav.drivers.sim import anatomy
+            from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
+            from drillnav.registration.ct_views import PlannedTrajectory
+
+            v = s.twin_scene.ct_voxel_mm
+            ct = make_pelvis_ct(seed=s.twin_scene.seed, voxel_mm=(v, v, v))
+            plan = [PlanEntry(trajectory=PlannedTrajectory(name=c.name, entry_mm=np.asarray(c.entry_mm), target_mm=np.asarray(c.target_mm), radius_mm=c.radius_mm),
+                              acceptance={"type": "bone", "threshold_hu": 200.0}) for c in anatomy.CORRIDORS]
+        else:
+            return None
+
+        def event(level: str, message: str) -> None:
+            self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": level, "message": message}))
+
+        at = np.asarray(s.ct.at_mm, dtype=np.float64) if s.ct.at_mm is not None else None
+        return CtTracker(ct=ct, plan=plan, at_isocentre_mm=at, on_event=event)
 
     def _spawn(self, target, name: str) -> None:
         t = threading.Thread(target=target, name=name, daemon=True)
@@ -175,7 +204,9 @@ class Daemon:
         return st
 
     def registration(self) -> dict[str, Any] | None:
-        return self.node.last_axis
+        if self.node.last_axis is None:
+            return None
+        return {**self.node.last_axis, "axis_ct": self.node.last_axis_ct} if self.node.last_axis_ct is not None else self.node.last_axis
 
     def request_registration(self) -> None:
         self.node.request_registration()

@@ -4,7 +4,10 @@ Camera frames arrive on ``camera/image``; only the newest waits (a bounded
 queue of one), so under overload stale frames are dropped and counted, never
 queued. Each new fluoroscopy shot (``fluoro/shot``) triggers marker detection
 and a new marker registration in a worker thread; every camera frame then gives
-``carm_from_drill`` and the axis in C with its predicted error.
+``carm_from_drill`` and the axis in C with its predicted error. With a
+:class:`~drillnav.service.ct_tracker.CtTracker` (video-CT mode), each marker
+registration also hands the shots to the CT registration, and every frame's
+axis is published in the CT frame too, with conformance to the plan.
 """
 
 from __future__ import annotations
@@ -55,8 +58,10 @@ class _Shot:
 
 
 class RegistrationNode:
-    def __init__(self, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet, camera: PinholeCamera, axis_drill: Line3D, max_views: int = 2, overlay_period_s: float = 0.5) -> None:
+    def __init__(self, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet, camera: PinholeCamera, axis_drill: Line3D, max_views: int = 2,
+                 overlay_period_s: float = 0.5, ct_tracker=None) -> None:
         self.session, self.prefix = session, prefix
+        self.ct_tracker = ct_tracker
         self.marker_set, self.camera, self.axis_drill = marker_set, camera, axis_drill
         self.max_views = max_views
         self.overlay_period_s = overlay_period_s
@@ -67,6 +72,7 @@ class RegistrationNode:
         self.poses: tuple[MarkerPose, ...] = ()
         self.shots: dict[str, _Shot] = {}
         self.last_axis: dict | None = None
+        self.last_axis_ct: dict | None = None
         self.last_error: str | None = None
         self._frame: deque = deque(maxlen=1)
         self._shots_in: deque = deque(maxlen=4)
@@ -77,6 +83,7 @@ class RegistrationNode:
         self._pe_time = 0.0
         self._pe_registration = -1
         self._pub_axis = session.declare_publisher(key(prefix, "axis_carm"), encoding=zenoh.Encoding.APPLICATION_JSON)
+        self._pub_axis_ct = session.declare_publisher(key(prefix, "axis_ct"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_status = session.declare_publisher(key(prefix, "status"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_events = session.declare_publisher(key(prefix, "events"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_markers = session.declare_publisher(key(prefix, "fluoro_markers"), encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -155,6 +162,8 @@ class RegistrationNode:
             "markers": [{"id": p.marker_id, "position_carm_mm": p.position_carm_mm.tolist(), "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged} for p in poses],
         }))
         self._event("info", f"registration {self.registration_id} from views {names}: {len(good)} markers")
+        if self.ct_tracker is not None:
+            self.ct_tracker.submit([(self.shots[n].view, self.shots[n].image, self.shots[n].detections) for n in names], self.registration_id)
 
     def _frame_loop(self) -> None:
         while not self._stop.is_set():
@@ -194,6 +203,13 @@ class RegistrationNode:
         }
         self._pub_axis.put(msg.encode_json(doc))
         self.last_axis = doc
+        if self.ct_tracker is not None:
+            doc_ct = self.ct_tracker.axis_message(Line3D(point_mm=work, direction=axis.direction), stamp_ns=time.time_ns(), source_frame_stamp_ns=stamp,
+                                                  predicted_error=doc["predicted_error"])
+            if doc_ct is not None:
+                doc_ct["registration_id"] = self.registration_id
+                self._pub_axis_ct.put(msg.encode_json(doc_ct))
+                self.last_axis_ct = doc_ct
         self.counters.axes_published += 1
         latency = (now - stamp) / 1e6
         self.counters.last_latency_ms = latency
@@ -213,6 +229,7 @@ class RegistrationNode:
             "axes_published": c.axes_published, "shots_received": c.shots_received, "registrations": c.registrations,
             "registration_failures": c.registration_failures, "latency_ms_p50": float(np.percentile(lat, 50)), "latency_ms_p99": float(np.percentile(lat, 99)),
             "last_error": self.last_error,
+            **(self.ct_tracker.status() if self.ct_tracker is not None else {}),
         }
 
     def _status_loop(self) -> None:
@@ -227,3 +244,5 @@ class RegistrationNode:
             s.undeclare()
         for t in self._threads:
             t.join(timeout=5)
+        if self.ct_tracker is not None:
+            self.ct_tracker.close()

@@ -70,6 +70,13 @@ class TwinSettings(_Section):
     seed: int = 0
     markers: int = Field(5, ge=3, le=7)
     views: str = "inlet,outlet"
+    ct_voxel_mm: float | None = Field(2.0, ge=0.5, le=4.0, description="the twin's preoperative CT for the live video-CT mode (voxel size); none: off")
+
+
+class CtSettings(_Section):
+    volume: Path | None = None  # preoperative CT: a DICOM series folder or .nii/.nii.gz; enables the live video-CT mode
+    plan: Path | None = None    # plan.json: trajectories judged for conformance
+    at_mm: tuple[float, float, float] | None = None  # the CT point the C-arm is centred on (default: the plan's first entry)
 
 
 class Settings(BaseSettings):
@@ -83,6 +90,7 @@ class Settings(BaseSettings):
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     twin_scene: TwinSettings = Field(default_factory=TwinSettings)
     calibration: CalibrationSettings = Field(default_factory=CalibrationSettings)
+    ct: CtSettings = Field(default_factory=CtSettings)
 
 
 class SettingsError(DrillnavError):

@@ -16,6 +16,9 @@ import uvicorn
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
+from drillnav.drivers.sim.anatomy import CORRIDORS
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.transforms import apply
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key, topic_for_key
 from drillnav.service.api import create_app
@@ -83,6 +86,9 @@ RECORD_CHILD = r"""
 import sys, time, numpy as np
 from drillnav.service.bus import open_session
 from drillnav.service.recorder import Recorder
+from drillnav.drivers.sim.anatomy import CORRIDORS
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.transforms import apply
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
 ep, folder = sys.argv[1], sys.argv[2]
@@ -243,13 +249,21 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
-        axes = []
+        axes, axes_ct = [], []
         with open_session(connect=[ep]) as s:
             s.declare_subscriber(key("drillnav", "axis_carm"), lambda smp: axes.append(msg.decode_json(smp.payload.to_bytes())))
-            deadline = time.monotonic() + 90
-            while time.monotonic() < deadline and len(axes) < 10:
+            s.declare_subscriber(key("drillnav", "axis_ct"), lambda smp: axes_ct.append(msg.decode_json(smp.payload.to_bytes())))
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and (len(axes) < 10 or len(axes_ct) < 5):
                 time.sleep(0.2)
         assert len(axes) >= 10, "no drill axis streamed"
+        # Live video-CT: the twin's CT registered to the shots, every axis carried into V with conformance to the nearest plan.
+        assert len(axes_ct) >= 5, "no drill axis in the CT frame streamed"
+        c = axes_ct[-1]
+        truth = make_scene(seed=5, render=False)
+        entry_ct = np.asarray(CORRIDORS[0].entry_mm)
+        assert np.linalg.norm(apply(np.asarray(c["carm_from_ct"]), entry_ct) - apply(truth.carm_from_ct, entry_ct)) < 1.0
+        assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and isinstance(c["conformance"]["breach"], bool)
         a = axes[-1]
         assert a["frame_id"] == "carm" and abs(np.linalg.norm(a["direction"]) - 1) < 1e-6 and a["predicted_error"]["position_mm"] > 0
         status = httpx.get("http://127.0.0.1:18082/status", timeout=5).json()
@@ -258,7 +272,14 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         from drillnav.drivers.dicom_scp import send_files
 
         before = status["registration_id"]
-        shot = sorted((tmp_path / "in").glob("*.dcm"))[0]
+        # A new shot (a new SOP instance, as a C-arm sends each exposure) from this separate process.
+        import pydicom
+        from pydicom.uid import generate_uid
+
+        ds = pydicom.dcmread(sorted((tmp_path / "in").glob("*.dcm"))[0])
+        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
+        shot = tmp_path / "new-shot.dcm"
+        ds.save_as(shot, enforce_file_format=True)
         t0 = time.monotonic()
         assert send_files(host="127.0.0.1", port=11140, called_ae="DRILLNAV", paths=[shot]) == [0]
         while time.monotonic() - t0 < 5.0 and httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] == before:

@@ -1,0 +1,173 @@
+"""Live video-CT: keeps ``carm_from_ct`` registered and carries every drill axis into the CT.
+
+The registration node hands each new set of fluoroscopy shots to
+:meth:`CtTracker.submit`; the CT registration (seconds) runs in the tracker's
+own thread, so the axis in C keeps streaming meanwhile. A new shot while one
+runs is queued (the newest wins). The first registration starts from the
+positioner geometry and the plan's entry at the isocentre (with the
+translation pre-alignment); later ones start from the last result, since the
+patient moves little between shots. It runs with one DRR thread at a lower
+OS priority, so marker registration and the camera loop keep their pace. A registration that does not converge
+keeps the last good ``carm_from_ct`` and says so in an event.
+
+:meth:`axis_message` gives ``L_V = ct_from_carm @ L_C`` for each camera frame,
+with conformance against the nearest planned trajectory, refreshed at most
+every ``conformance_period_s`` (its distance-map look-ups are cheap, but not
+free at camera rate).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from drillnav.registration.conformance import conformance_along
+from drillnav.registration.ct_registration import CtRegistration, register_ct
+from drillnav.registration.drr import drr_pyramid
+from drillnav.registration.errors import DrillnavError
+from drillnav.registration.line import Line3D
+from drillnav.registration.transforms import invert
+from drillnav.registration.volume import Volume
+
+from .ct_mode import MAX_ANGLE_TO_JUDGE_DEG, PlanEntry, acceptance_surface, initial_carm_from_ct, shots_for_ct
+
+__all__ = ["CtTracker"]
+
+
+class CtTracker:
+    def __init__(
+        self,
+        *,
+        ct: Volume,
+        plan: list[PlanEntry],
+        at_isocentre_mm: NDArray[np.float64] | None = None,
+        on_event: Callable[[str, str], None] = lambda level, message: None,
+        search_mm: float = 120.0,
+        conformance_period_s: float = 0.2,
+    ) -> None:
+        self.ct, self.plan, self.on_event = ct, plan, on_event
+        self.search_mm, self.conformance_period_s = search_mm, conformance_period_s
+        at = at_isocentre_mm if at_isocentre_mm is not None else (plan[0].trajectory.entry_mm if plan else None)
+        self.initial = initial_carm_from_ct(ct, at_isocentre_mm=at)
+        self.pyramid = drr_pyramid(ct, (2, 4))
+        self._surfaces: dict = {}
+        for entry in plan:  # distance maps up front: none is built at camera rate
+            acceptance_surface(ct, entry, self._surfaces)
+        self.registration: CtRegistration | None = None
+        self.registration_id = 0
+        self.failures = 0
+        self.last_error: str | None = None
+        self._pending: tuple[list, int] | None = None
+        self._lock = threading.Condition()
+        self._stop = threading.Event()
+        self._conf: dict[str, Any] | None = None
+        self._conf_time = 0.0
+        self._conf_registration = -1
+        self._thread = threading.Thread(target=self._loop, name="ct-registration", daemon=True)
+        self._thread.start()
+
+    # -- registration (own thread) ---------------------------------------------------------------
+    def submit(self, shots: list[tuple[Any, NDArray[np.float32], Any]], marker_registration_id: int) -> None:
+        """``(view, image_log, detections)`` per shot; replaces any submission still waiting."""
+        with self._lock:
+            self._pending = (shots, marker_registration_id)
+            self._lock.notify_all()
+
+    @property
+    def busy(self) -> bool:
+        return self._pending is not None
+
+    def _loop(self) -> None:
+        # Background work: one DRR thread at low priority, so the camera loop and marker registration keep their core.
+        numba.set_num_threads(1)
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)  # Linux: this thread only
+        except (AttributeError, OSError):
+            pass  # not on Linux: the registration just competes on equal terms
+        while not self._stop.is_set():
+            with self._lock:
+                while self._pending is None and not self._stop.is_set():
+                    self._lock.wait(0.2)
+                if self._stop.is_set():
+                    return
+                shots, marker_id = self._pending
+            try:
+                self._register(shots, marker_id)
+            except (DrillnavError, ValueError) as exc:
+                self.failures += 1
+                self.last_error = str(exc)
+                self.on_event("error", f"CT registration failed: {exc}")
+            finally:
+                with self._lock:
+                    if self._pending is not None and self._pending[0] is shots:
+                        self._pending = None
+
+    def _register(self, shots, marker_id: int) -> None:
+        previous = self.registration
+        start = previous.carm_from_ct if previous is not None else self.initial
+        reg = register_ct(self.pyramid, shots_for_ct(shots), start, search_mm=None if previous is not None else self.search_mm)
+        if not reg.converged:
+            self.failures += 1
+            self.last_error = f"CT registration did not converge (GC {reg.similarity:.3f}); keeping the previous one" if previous else f"CT registration did not converge (GC {reg.similarity:.3f})"
+            self.on_event("warning", self.last_error)
+            return
+        self.registration = reg
+        self.registration_id += 1
+        self.last_error = None
+        self.on_event("info", f"CT registration {self.registration_id} (after marker registration {marker_id}): GC {reg.similarity:.3f} in {reg.runtime_s:.1f} s")
+
+    # -- per camera frame ----------------------------------------------------------------------------
+    def axis_message(self, axis_carm: Line3D, *, stamp_ns: int, source_frame_stamp_ns: int, predicted_error: dict[str, float]) -> dict[str, Any] | None:
+        """The ``drillnav.DrillAxis`` message in frame V (None before the first CT registration)."""
+        reg = self.registration
+        if reg is None:
+            return None
+        axis_ct = axis_carm.transformed(invert(reg.carm_from_ct))
+        now = time.monotonic()
+        if self._conf is None or self._conf_registration != self.registration_id or now - self._conf_time > self.conformance_period_s:
+            self._conf = self._conformance(axis_ct)
+            self._conf_time, self._conf_registration = now, self.registration_id
+        doc: dict[str, Any] = {
+            "stamp_ns": stamp_ns, "frame_id": "ct", "point_mm": axis_ct.point_mm.tolist(), "direction": axis_ct.direction.tolist(),
+            "predicted_error": dict(predicted_error), "source_frame_stamp_ns": source_frame_stamp_ns,
+            "ct_registration_id": self.registration_id, "ct_similarity_gc": reg.similarity, "carm_from_ct": reg.carm_from_ct.tolist(),
+        }
+        if self._conf is not None:
+            doc["conformance"] = self._conf
+        return doc
+
+    def _conformance(self, axis_ct: Line3D) -> dict[str, Any] | None:
+        """Against the nearest trajectory within the judged angle (None when none is)."""
+        best = None
+        for entry in self.plan:
+            t = entry.trajectory
+            planned = (t.target_mm - t.entry_mm) / np.linalg.norm(t.target_mm - t.entry_mm)
+            angle = float(np.degrees(np.arccos(np.clip(axis_ct.direction @ planned, -1.0, 1.0))))
+            offset = float(axis_ct.distance_to_point(t.entry_mm))
+            if angle <= MAX_ANGLE_TO_JUDGE_DEG and (best is None or offset < best[0]):
+                best = (offset, angle, entry)
+        if best is None:
+            return None
+        offset, angle, entry = best
+        t = entry.trajectory
+        c = conformance_along(axis_ct, acceptance_surface(self.ct, entry, self._surfaces), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
+        return {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle, "breach": bool(c.breach),
+                "min_clearance_mm": float(c.min_distance_mm) if np.isfinite(c.min_distance_mm) else None, "kwire_radius_mm": c.kwire_radius_mm}
+
+    def status(self) -> dict[str, Any]:
+        reg = self.registration
+        return {"ct_registration_id": self.registration_id, "ct_registering": self.busy, "ct_failures": self.failures,
+                "ct_similarity_gc": None if reg is None else reg.similarity, "ct_last_error": self.last_error}
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._lock:
+            self._lock.notify_all()
+        self._thread.join(timeout=30)
