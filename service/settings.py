@@ -70,7 +70,7 @@ class TwinSettings(_Section):
     seed: int = 0
     markers: int = Field(5, ge=3, le=7)
     views: str = "inlet,outlet"
-    ct_voxel_mm: float | None = Field(2.0, ge=0.5, le=4.0, description="the twin's preoperative CT for the live video-CT mode (voxel size); none: off")
+    ct_voxel_mm: float | None = Field(None, ge=0.5, le=4.0, description="the twin's preoperative CT for the live video-CT mode (voxel size, e.g. 2.0); unset: off")
 
 
 class CtSettings(_Section):

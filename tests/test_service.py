@@ -243,7 +243,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     cfg = tmp_path / "drillnav.toml"
     cfg.write_text(
         f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18082\ntoken = "test-token-1"\n'
-        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = 11140\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\n'
+        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = 11140\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\n'
         f'[calibration]\nfolder = "{tmp_path / "cal"}"\n'
     )
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
