@@ -97,9 +97,9 @@ def _trajectory(args: argparse.Namespace) -> tuple[anatomy.Corridor, dict | None
     if not chosen:
         raise CliError(f"{args.plan} has no trajectory '{args.corridor}': it has {', '.join(p.trajectory.name for p in plan)}")
     t = chosen[0].trajectory
-    doc = plan_to_json([anatomy.Corridor(name=t.name, entry_mm=tuple(map(float, t.entry_mm)), target_mm=tuple(map(float, t.target_mm)), radius_mm=t.radius_mm)])
-    doc["trajectories"][0]["acceptance"] = chosen[0].acceptance  # load_plan made a label path absolute
     corridor = anatomy.Corridor(name=t.name, entry_mm=tuple(map(float, t.entry_mm)), target_mm=tuple(map(float, t.target_mm)), radius_mm=t.radius_mm)
+    doc = plan_to_json([corridor])
+    doc["trajectories"][0]["acceptance"] = chosen[0].acceptance  # load_plan made a label path absolute
     return corridor, doc
 
 

@@ -26,7 +26,7 @@ from drillnav.registration.volume import Volume
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.scene_files import read_plan
 
-__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "acceptance_surface", "shots_for_ct", "CtModeError"]
+__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "acceptance_surface", "shots_for_ct", "plan_entries", "angle_and_offset", "CtModeError"]
 
 
 MAX_ANGLE_TO_JUDGE_DEG = 45.0
@@ -43,12 +43,16 @@ class PlanEntry:
 
 
 def load_plan(path: str | Path) -> list[PlanEntry]:
-    doc = read_plan(path)
+    return plan_entries(read_plan(path), base=Path(path).parent)
+
+
+def plan_entries(doc: dict[str, Any], *, base: Path) -> list[PlanEntry]:
+    """A validated plan document as entries; label volume paths resolved against ``base``; bone at 200 HU by default."""
     out = []
     for t in doc["trajectories"]:
         acc = dict(t.get("acceptance", {"type": "bone", "threshold_hu": 200.0}))
         if acc["type"] == "label":
-            acc["path"] = str((Path(path).parent / acc["path"]).resolve())
+            acc["path"] = str((base / acc["path"]).resolve())
         out.append(PlanEntry(trajectory=PlannedTrajectory(name=t["name"], entry_mm=np.asarray(t["entry_mm"], float), target_mm=np.asarray(t["target_mm"], float),
                                                           radius_mm=float(t["corridor"]["radius_mm"])), acceptance=acc))
     return out
@@ -81,9 +85,10 @@ def register_ct_to_fluoro(ct: Volume, images, detections, *, at_isocentre_mm=Non
 def acceptance_surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDistance:
     """The signed distance to ``entry``'s acceptance volume (bone threshold or labels), cached by its definition."""
     acc = entry.acceptance
-    key = (acc["type"], acc.get("threshold_hu"), acc.get("path"), tuple(acc.get("labels", ())))
+    pts = np.vstack([entry.trajectory.entry_mm, entry.trajectory.target_mm])
+    # The map is cropped about this trajectory, so the trajectory is part of the key, not the definition alone.
+    key = (acc["type"], acc.get("threshold_hu"), acc.get("path"), tuple(acc.get("labels", ())), tuple(pts.ravel().tolist()))
     if key not in cache:
-        pts = np.vstack([entry.trajectory.entry_mm, entry.trajectory.target_mm])
         if acc["type"] == "bone":
             cache[key] = SurfaceDistance.bone(ct, threshold_hu=float(acc.get("threshold_hu", 200.0)), around_mm=pts)
         else:
@@ -94,6 +99,13 @@ def acceptance_surface(ct: Volume, entry: PlanEntry, cache: dict) -> SurfaceDist
             # The label volume keeps its own grid: distances are taken in patient mm, so it need not match the CT's.
             cache[key] = SurfaceDistance.from_mask(mask, labels.patient_from_voxel, around_mm=pts)
     return cache[key]
+
+
+def angle_and_offset(axis_ct: Line3D, trajectory: PlannedTrajectory) -> tuple[float, float]:
+    """Angle (deg) between the axis and the planned direction, and the axis's distance (mm) from the planned entry."""
+    planned = (trajectory.target_mm - trajectory.entry_mm) / np.linalg.norm(trajectory.target_mm - trajectory.entry_mm)
+    angle = float(np.degrees(np.arccos(np.clip(axis_ct.direction @ planned, -1.0, 1.0))))
+    return angle, float(axis_ct.distance_to_point(trajectory.entry_mm))
 
 
 def axis_in_ct_report(
@@ -122,9 +134,7 @@ def axis_in_ct_report(
     cache: dict = {}
     for entry in plan or []:
         t = entry.trajectory
-        offset = float(axis_ct.distance_to_point(t.entry_mm))
-        planned = (t.target_mm - t.entry_mm) / np.linalg.norm(t.target_mm - t.entry_mm)
-        angle = float(np.degrees(np.arccos(np.clip(axis_ct.direction @ planned, -1.0, 1.0))))
+        angle, offset = angle_and_offset(axis_ct, t)
         row: dict[str, Any] = {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle}
         if angle > MAX_ANGLE_TO_JUDGE_DEG:
             row.update(evaluated=False, reason=f"the axis is {angle:.0f} deg off this trajectory (judged within {MAX_ANGLE_TO_JUDGE_DEG:.0f} deg)")

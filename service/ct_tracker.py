@@ -7,8 +7,9 @@ runs is queued (the newest wins). The first registration starts from the
 positioner geometry and the plan's entry at the isocentre (with the
 translation pre-alignment); later ones start from the last result, since the
 patient moves little between shots. It runs with one DRR thread at a lower
-OS priority, so marker registration and the camera loop keep their pace. A registration that does not converge
-keeps the last good ``carm_from_ct`` and says so in an event.
+OS priority, so marker registration and the camera loop keep their pace. A
+registration that does not converge keeps the last good ``carm_from_ct`` and
+says so in an event.
 
 :meth:`axis_message` gives ``L_V = ct_from_carm @ L_C`` for each camera frame,
 with conformance against the nearest planned trajectory, refreshed at most
@@ -36,7 +37,7 @@ from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
 from drillnav.registration.volume import Volume
 
-from .ct_mode import MAX_ANGLE_TO_JUDGE_DEG, PlanEntry, acceptance_surface, initial_carm_from_ct, shots_for_ct
+from .ct_mode import MAX_ANGLE_TO_JUDGE_DEG, PlanEntry, acceptance_surface, angle_and_offset, initial_carm_from_ct, shots_for_ct
 
 __all__ = ["CtTracker"]
 
@@ -61,6 +62,7 @@ class CtTracker:
         for entry in plan:  # distance maps up front: none is built at camera rate
             acceptance_surface(ct, entry, self._surfaces)
         self.registration: CtRegistration | None = None
+        self._current: tuple[CtRegistration, NDArray[np.float64]] | None = None
         self.registration_id = 0
         self.failures = 0
         self.last_error: str | None = None
@@ -115,10 +117,11 @@ class CtTracker:
         reg = register_ct(self.pyramid, shots_for_ct(shots), start, search_mm=None if previous is not None else self.search_mm)
         if not reg.converged:
             self.failures += 1
-            self.last_error = f"CT registration did not converge (GC {reg.similarity:.3f}); keeping the previous one" if previous else f"CT registration did not converge (GC {reg.similarity:.3f})"
+            self.last_error = f"CT registration did not converge (GC {reg.similarity:.3f})" + ("; keeping the previous one" if previous else "")
             self.on_event("warning", self.last_error)
             return
         self.registration = reg
+        self._current = (reg, invert(reg.carm_from_ct))  # one reference, swapped at once for the frame thread
         self.registration_id += 1
         self.last_error = None
         self.on_event("info", f"CT registration {self.registration_id} (after marker registration {marker_id}): GC {reg.similarity:.3f} in {reg.runtime_s:.1f} s")
@@ -126,10 +129,10 @@ class CtTracker:
     # -- per camera frame ----------------------------------------------------------------------------
     def axis_message(self, axis_carm: Line3D, *, stamp_ns: int, source_frame_stamp_ns: int, predicted_error: dict[str, float]) -> dict[str, Any] | None:
         """The ``drillnav.DrillAxis`` message in frame V (None before the first CT registration)."""
-        reg = self.registration
-        if reg is None:
+        if self._current is None:
             return None
-        axis_ct = axis_carm.transformed(invert(reg.carm_from_ct))
+        reg, ct_from_carm = self._current
+        axis_ct = axis_carm.transformed(ct_from_carm)
         now = time.monotonic()
         if self._conf is None or self._conf_registration != self.registration_id or now - self._conf_time > self.conformance_period_s:
             self._conf = self._conformance(axis_ct)
@@ -147,10 +150,7 @@ class CtTracker:
         """Against the nearest trajectory within the judged angle (None when none is)."""
         best = None
         for entry in self.plan:
-            t = entry.trajectory
-            planned = (t.target_mm - t.entry_mm) / np.linalg.norm(t.target_mm - t.entry_mm)
-            angle = float(np.degrees(np.arccos(np.clip(axis_ct.direction @ planned, -1.0, 1.0))))
-            offset = float(axis_ct.distance_to_point(t.entry_mm))
+            angle, offset = angle_and_offset(axis_ct, entry.trajectory)
             if angle <= MAX_ANGLE_TO_JUDGE_DEG and (best is None or offset < best[0]):
                 best = (offset, angle, entry)
         if best is None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -94,7 +95,7 @@ class Daemon:
         """The live video-CT mode: from ``[ct] volume`` (and ``plan``), or the twin's own CT; None when off."""
         from drillnav.drivers.ct_volume import read_ct
 
-        from .ct_mode import PlanEntry, load_plan
+        from .ct_mode import load_plan, plan_entries
         from .ct_tracker import CtTracker
 
         s = self.settings
@@ -103,20 +104,18 @@ class Daemon:
         elif s.twin and s.twin_scene.ct_voxel_mm:
             from drillnav.drivers.sim import anatomy
             from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
-            from drillnav.registration.ct_views import PlannedTrajectory
+            from drillnav.schemas.scene_files import plan_to_json
 
             v = s.twin_scene.ct_voxel_mm
             ct = make_pelvis_ct(seed=s.twin_scene.seed, voxel_mm=(v, v, v))
-            plan = [PlanEntry(trajectory=PlannedTrajectory(name=c.name, entry_mm=np.asarray(c.entry_mm), target_mm=np.asarray(c.target_mm), radius_mm=c.radius_mm),
-                              acceptance={"type": "bone", "threshold_hu": 200.0}) for c in anatomy.CORRIDORS]
+            plan = plan_entries(plan_to_json(anatomy.CORRIDORS), base=Path.cwd())  # the twin's plan.json, as sim scene writes it
         else:
             return None
-
-        def event(level: str, message: str) -> None:
-            self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": level, "message": message}))
-
         at = np.asarray(s.ct.at_mm, dtype=np.float64) if s.ct.at_mm is not None else None
-        return CtTracker(ct=ct, plan=plan, at_isocentre_mm=at, on_event=event)
+        return CtTracker(ct=ct, plan=plan, at_isocentre_mm=at, on_event=self._event)
+
+    def _event(self, level: str, message: str) -> None:
+        self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": level, "message": message}))
 
     def _spawn(self, target, name: str) -> None:
         t = threading.Thread(target=target, name=name, daemon=True)
@@ -160,7 +159,7 @@ class Daemon:
                     pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
         except DrillnavError as exc:
             self.errors.append(str(exc))
-            self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "error", "message": str(exc)}))
+            self._event("error", str(exc))
 
     def _dicom_loop(self) -> None:
         while not self._stop.is_set():
@@ -169,7 +168,7 @@ class Daemon:
                     images = read_fluoro(path)
                 except DrillnavError as exc:
                     self.errors.append(str(exc))
-                    self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "error", "message": f"fluoroscopy refused: {exc}"}))
+                    self._event("error", f"fluoroscopy refused: {exc}")
                     continue
                 for img in images:
                     # A re-shot of the same view replaces the earlier shot of it in the node.
@@ -194,7 +193,7 @@ class Daemon:
             self.node.camera = read_camera_calibration(path)
         else:
             self.node.axis_drill = read_drill_calibration(path)
-        self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": "info", "message": f"{kind} calibration installed from {path}"}))
+        self._event("info", f"{kind} calibration installed from {path}")
 
     # -- ServiceState for the API ------------------------------------------------------------
     def status(self) -> dict[str, Any]:

@@ -1,5 +1,7 @@
 """DRR against exact line integrals, gradient correlation, fluoroscopy-to-CT registration on the twin, conformance."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -108,6 +110,20 @@ def test_planned_corridors_are_breach_free(bone, corridor):
     e, t = np.array(corridor.entry_mm), np.array(corridor.target_mm)
     c = conformance_along(Line3D.through(e, t), bone, planned_entry_mm=e, planned_target_mm=t)
     assert not c.breach and c.min_distance_mm > 1.5 and c.along_mm[-1] > 50
+
+
+def test_acceptance_maps_shared_by_trajectories_are_each_cropped_about_their_own(ct):
+    """One plan, one acceptance definition, three corridors apart: each gets the distance map about itself."""
+    from drillnav.schemas.scene_files import plan_to_json
+    from drillnav.service.ct_mode import acceptance_surface, plan_entries
+
+    cache: dict = {}
+    for entry in plan_entries(plan_to_json(anatomy.CORRIDORS), base=Path.cwd()):
+        t = entry.trajectory
+        e, tg = t.entry_mm, t.target_mm
+        c = conformance_along(Line3D.through(e, tg), acceptance_surface(ct, entry, cache), planned_entry_mm=e, planned_target_mm=tg)
+        assert not c.breach and c.min_distance_mm > 1.5, t.name
+    assert len(cache) == len(anatomy.CORRIDORS)
 
 
 def test_superior_ramus_shifted_4mm_is_flagged_in_every_direction(bone):
