@@ -14,11 +14,13 @@ negative clearance.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from .distance_kernels import first_crossings, sample_trilinear
 from .errors import DegenerateInput
 from .line import Line3D
 from .transforms import apply
@@ -28,6 +30,7 @@ __all__ = ["SurfaceDistance", "Conformance", "conformance_along", "radial_cleara
 
 K_WIRE_RADIUS_MM = 1.5
 BONE_THRESHOLD_HU = 200.0
+OUTSIDE_MM = -1e3  # the signed distance reported beyond the grid
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -60,10 +63,13 @@ class SurfaceDistance:
         inside = ndimage.binary_fill_holes(data >= threshold_hu)
         return cls.from_mask(inside, a)
 
+    @cached_property
+    def voxel_from_patient(self) -> NDArray[np.float64]:
+        return np.linalg.inv(self.patient_from_voxel)
+
     def at(self, points_mm: ArrayLike) -> NDArray[np.float64]:
-        """Signed distance at patient points (N, 3), trilinear; far outside (-1e3) beyond the grid."""
-        ijk = apply(np.linalg.inv(self.patient_from_voxel), np.atleast_2d(points_mm))
-        return ndimage.map_coordinates(self.distance_mm, ijk[:, ::-1].T, order=1, mode="constant", cval=-1e3)
+        """Signed distance at patient points (N, 3), trilinear; far outside (``OUTSIDE_MM``) beyond the grid."""
+        return sample_trilinear(self.distance_mm, self.voxel_from_patient, np.asarray(points_mm, dtype=np.float64), outside=OUTSIDE_MM)
 
 
 def _crop(data: NDArray, patient_from_voxel: NDArray[np.float64], around_mm: ArrayLike | None, margin_mm: float) -> tuple[NDArray, NDArray[np.float64]]:
@@ -168,18 +174,7 @@ def radial_clearance(axis: Line3D, s_mm: NDArray[np.float64], surface: SurfaceDi
     w = np.cross(d, u)
     ang = np.linspace(0, 2 * np.pi, n_directions, endpoint=False)
     dirs = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * w  # (R, 3)
-    r = np.arange(0.0, reach_mm + 1e-9, step_mm)  # (M,)
-    centres = axis.at(s_mm)  # (N, 3)
-    pts = centres[:, None, None, :] + dirs[None, :, None, :] * r[None, None, :, None]  # (N, R, M, 3)
-    vals = surface.at(pts.reshape(-1, 3)).reshape(len(s_mm), n_directions, len(r))
-    outside = vals <= 0
-    first = np.where(outside.any(axis=2), outside.argmax(axis=2), -1)  # (N, R)
-    k = np.maximum(first, 1)
-    v0 = np.take_along_axis(vals, (k - 1)[..., None], axis=2)[..., 0]
-    v1 = np.take_along_axis(vals, k[..., None], axis=2)[..., 0]
-    frac = np.clip(v0 / np.maximum(v0 - v1, 1e-9), 0.0, 1.0)
-    crossing = np.where(first < 0, reach_mm, np.where(first == 0, 0.0, r[k - 1] + frac * step_mm))
-    clearance = crossing.min(axis=1)
+    clearance = first_crossings(surface.distance_mm, surface.voxel_from_patient, axis.at(s_mm), dirs, reach_mm=reach_mm, step_mm=step_mm, outside=OUTSIDE_MM)
     return np.where(on_axis_mm > 0, clearance, on_axis_mm)
 
 

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import DegenerateInput
 from .transforms import apply, check_points, from_quaternion
 
-__all__ = ["RigidFit", "absolute_orientation"]
+__all__ = ["RigidFit", "absolute_orientation", "absolute_orientation_batch"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -74,3 +74,43 @@ def absolute_orientation(
     t[:3, 3] = cd - t[:3, :3] @ cs
     res = np.linalg.norm(apply(t, s) - d, axis=1)
     return RigidFit(target_from_source=t, residuals_mm=res, fre_mm=float(np.sqrt(wn @ res**2)))
+
+
+def absolute_orientation_batch(source_points: ArrayLike, target_points: ArrayLike) -> NDArray[np.float64]:
+    """Unweighted Horn for B independent point sets at once (e.g. Monte-Carlo draws).
+
+    Parameters
+    ----------
+    source_points, target_points : array, shape (B, N, 3)
+        B sets of N >= 3 corresponding, non-collinear points.
+
+    Returns
+    -------
+    target_from_source : (B, 4, 4)
+        Each set's rigid transform, the same as :func:`absolute_orientation` gives it.
+    """
+    s = np.asarray(source_points, dtype=np.float64)
+    d = np.asarray(target_points, dtype=np.float64)
+    if s.ndim != 3 or s.shape[2] != 3 or s.shape != d.shape or s.shape[1] < 3:
+        raise DegenerateInput(f"expected two (B, N>=3, 3) point arrays of one shape, got {s.shape} and {d.shape}")
+    cs, cd = s.mean(axis=1), d.mean(axis=1)
+    m = np.einsum("bna,bnc->bac", s - cs[:, None], d - cd[:, None]) / s.shape[1]
+    (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = m[:, 0].T, m[:, 1].T, m[:, 2].T
+    n_mat = np.stack([
+        np.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], axis=-1),
+        np.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], axis=-1),
+        np.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], axis=-1),
+        np.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], axis=-1),
+    ], axis=-2)
+    _, vecs = np.linalg.eigh(n_mat)
+    w, x, y, z = vecs[:, :, -1].T  # eigh sorts ascending: the last vector has the largest eigenvalue
+    rot = np.stack([
+        np.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], axis=-1),
+    ], axis=-2)
+    out = np.zeros((s.shape[0], 4, 4))
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = cd - np.einsum("bij,bj->bi", rot, cs)
+    out[:, 3, 3] = 1.0
+    return out

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from .camera import PinholeCamera
 from .errors import DegenerateInput, MarkersNotFound
-from .horn import absolute_orientation
+from .horn import absolute_orientation, absolute_orientation_batch
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
@@ -144,25 +144,27 @@ def predicted_axis_error(
     vids = video.by_id()
     poses = {p.marker_id: p for p in marker_poses}
     ids = list(registration.used_ids)
-    src = np.array([vids[i].position_camera_mm for i in ids])
+    src = np.array([vids[i].position_camera_mm for i in ids])  # (N, 3)
     dst = np.array([poses[i].position_carm_mm for i in ids])
-    covs = [vids[i].covariance_mm2 for i in ids]
+    chol = np.linalg.cholesky(np.array([vids[i].covariance_mm2 for i in ids]) + 1e-9 * np.eye(3))  # (N, 3, 3)
     axis_c = axis_drill.transformed(registration.carm_from_drill)
     s0 = float(np.dot(working_point_carm_mm - axis_c.point_mm, axis_c.direction))
     ref = axis_c.at(s0)[0]
-    pos, ang = [], []
-    for _ in range(samples):
-        s = src + np.array([rng.multivariate_normal(np.zeros(3), c + 1e-9 * np.eye(3)) for c in covs])
-        s = s * (1.0 + rng.normal(scale=focal_rel_sigma))
-        d = dst + rng.normal(scale=fluoro_sigma_mm, size=dst.shape)
-        t = absolute_orientation(s, d).target_from_source
-        tilt = np.radians(axis_sigma_deg) * rng.normal(size=3)
-        k = np.linalg.norm(tilt)
-        direction = axis_drill.direction if k == 0 else (np.cos(k) * axis_drill.direction + np.sin(k) * np.cross(tilt / k, axis_drill.direction))
-        perturbed = Line3D(point_mm=axis_drill.point_mm + rng.normal(scale=axis_sigma_mm, size=3), direction=direction)
-        a = perturbed.transformed(t)
-        p = a.closest_point(ref)
-        pos.append(np.linalg.norm(p - ref))
-        ang.append(a.angle_deg(axis_c))
+    # All draws at once (B samples): video points, common focal scale, fluoroscopy points, axis calibration.
+    s = src + np.einsum("nij,bnj->bni", chol, rng.normal(size=(samples, len(ids), 3)))
+    s = s * (1.0 + rng.normal(scale=focal_rel_sigma, size=(samples, 1, 1)))
+    d = dst + rng.normal(scale=fluoro_sigma_mm, size=(samples, *dst.shape))
+    carm_from_drill = absolute_orientation_batch(s, d)  # (B, 4, 4)
+    tilt = np.radians(axis_sigma_deg) * rng.normal(size=(samples, 3))
+    k = np.linalg.norm(tilt, axis=1, keepdims=True)
+    unit = np.divide(tilt, k, out=np.zeros_like(tilt), where=k > 0)
+    direction_d = np.cos(k) * axis_drill.direction + np.sin(k) * np.cross(unit, axis_drill.direction)
+    point_d = axis_drill.point_mm + rng.normal(scale=axis_sigma_mm, size=(samples, 3))
+    point_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], point_d) + carm_from_drill[:, :3, 3]
+    direction_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], direction_d)
+    direction_c /= np.linalg.norm(direction_c, axis=1, keepdims=True)
+    nearest = point_c + np.sum((ref - point_c) * direction_c, axis=1, keepdims=True) * direction_c
+    pos = np.linalg.norm(nearest - ref, axis=1)
+    ang = np.degrees(np.arccos(np.clip(direction_c @ axis_c.direction, -1.0, 1.0)))
     p95, a95 = float(np.percentile(pos, 95)), float(np.percentile(ang, 95))
     return PredictedError(position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95)

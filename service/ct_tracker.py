@@ -1,15 +1,15 @@
 """Live video-CT: keeps ``carm_from_ct`` registered and carries every drill axis into the CT.
 
 The registration node hands each new set of fluoroscopy shots to
-:meth:`CtTracker.submit`; the CT registration (seconds) runs in the tracker's
-own thread, so the axis in C keeps streaming meanwhile. A new shot while one
-runs is queued (the newest wins). The first registration starts from the
-positioner geometry and the plan's entry at the isocentre (with the
-translation pre-alignment); later ones start from the last result, since the
-patient moves little between shots. It runs with one DRR thread at a lower
-OS priority, so marker registration and the camera loop keep their pace. A
-registration that does not converge keeps the last good ``carm_from_ct`` and
-says so in an event.
+:meth:`CtTracker.submit`; the CT registration (seconds) runs in a worker
+process of its own (spawned, with one DRR thread at a lower OS priority), so
+its CMA-ES never holds the daemon's GIL and the camera loop keeps its pace.
+A new shot while one runs is queued (the newest wins). The first registration
+starts from the positioner geometry and the plan's entry at the isocentre
+(with the translation pre-alignment); later ones start from the last result,
+since the patient moves little between shots. A registration that does not
+converge keeps the last good ``carm_from_ct`` and says so in an event; a
+worker that dies is restarted for the next submission.
 
 :meth:`axis_message` gives ``L_V = ct_from_carm @ L_C`` for each camera frame,
 with conformance against the nearest planned trajectory, refreshed at most
@@ -19,13 +19,14 @@ free at camera rate).
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import threading
 import time
 from collections.abc import Callable
+from multiprocessing.connection import Connection
 from typing import Any
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -57,10 +58,14 @@ class CtTracker:
         self.search_mm, self.conformance_period_s = search_mm, conformance_period_s
         at = at_isocentre_mm if at_isocentre_mm is not None else (plan[0].trajectory.entry_mm if plan else None)
         self.initial = initial_carm_from_ct(ct, at_isocentre_mm=at)
-        self.pyramid = drr_pyramid(ct, (2, 4))
+        self._worker: multiprocessing.process.BaseProcess | None = None
+        self._conn: Connection | None = None
         self._surfaces: dict = {}
         for entry in plan:  # distance maps up front: none is built at camera rate
             acceptance_surface(ct, entry, self._surfaces)
+        if plan:  # and the compiled look-ups loaded before the first frame needs them
+            t = plan[0].trajectory
+            self._conformance(Line3D(point_mm=np.asarray(t.entry_mm, dtype=np.float64), direction=np.asarray(t.target_mm) - np.asarray(t.entry_mm)))
         self.registration: CtRegistration | None = None
         self._current: tuple[CtRegistration, NDArray[np.float64]] | None = None
         self.registration_id = 0
@@ -87,12 +92,6 @@ class CtTracker:
         return self._pending is not None
 
     def _loop(self) -> None:
-        # Background work: one DRR thread at low priority, so the camera loop and marker registration keep their core.
-        numba.set_num_threads(1)
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)  # Linux: this thread only
-        except (AttributeError, OSError):
-            pass  # not on Linux: the registration just competes on equal terms
         while not self._stop.is_set():
             with self._lock:
                 while self._pending is None and not self._stop.is_set():
@@ -102,6 +101,8 @@ class CtTracker:
                 shots, marker_id = self._pending
             try:
                 self._register(shots, marker_id)
+            except _WorkerStopped:
+                return
             except (DrillnavError, ValueError) as exc:
                 self.failures += 1
                 self.last_error = str(exc)
@@ -114,7 +115,7 @@ class CtTracker:
     def _register(self, shots, marker_id: int) -> None:
         previous = self.registration
         start = previous.carm_from_ct if previous is not None else self.initial
-        reg = register_ct(self.pyramid, shots_for_ct(shots), start, search_mm=None if previous is not None else self.search_mm)
+        reg = self._in_worker(shots_for_ct(shots), start, None if previous is not None else self.search_mm)
         if not reg.converged:
             self.failures += 1
             self.last_error = f"CT registration did not converge (GC {reg.similarity:.3f})" + ("; keeping the previous one" if previous else "")
@@ -125,6 +126,28 @@ class CtTracker:
         self.registration_id += 1
         self.last_error = None
         self.on_event("info", f"CT registration {self.registration_id} (after marker registration {marker_id}): GC {reg.similarity:.3f} in {reg.runtime_s:.1f} s")
+
+    def _in_worker(self, shots: list, start: NDArray[np.float64], search_mm: float | None) -> CtRegistration:
+        if self._worker is None or not self._worker.is_alive():
+            ctx = multiprocessing.get_context("spawn")  # never fork a process that runs zenoh's threads
+            self._conn, child = ctx.Pipe()
+            self._worker = ctx.Process(target=_worker_main, args=(child, self.ct), name="drillnav-ct-registration", daemon=True)
+            self._worker.start()
+            child.close()
+        assert self._conn is not None
+        self._conn.send((shots, start, search_mm))
+        while not self._conn.poll(0.2):
+            if self._stop.is_set():
+                raise _WorkerStopped
+            if not self._worker.is_alive():
+                raise DrillnavError(f"the CT registration worker died (exit code {self._worker.exitcode}); it restarts with the next shot")
+        try:
+            kind, value = self._conn.recv()
+        except EOFError:
+            raise DrillnavError("the CT registration worker closed its pipe mid-registration; it restarts with the next shot") from None
+        if kind == "error":
+            raise DrillnavError(value)
+        return value
 
     # -- per camera frame ----------------------------------------------------------------------------
     def axis_message(self, axis_carm: Line3D, *, stamp_ns: int, source_frame_stamp_ns: int, predicted_error: dict[str, float]) -> dict[str, Any] | None:
@@ -171,3 +194,34 @@ class CtTracker:
         with self._lock:
             self._lock.notify_all()
         self._thread.join(timeout=30)
+        if self._worker is not None:
+            if self._worker.is_alive():
+                self._worker.terminate()  # a registration mid-way has nothing worth keeping
+            self._worker.join(timeout=10)
+            assert self._conn is not None
+            self._conn.close()
+
+
+class _WorkerStopped(Exception):
+    """The tracker is closing while a registration runs."""
+
+
+def _worker_main(conn: Connection, ct: Volume) -> None:
+    """The worker process: builds the DRR pyramid once, then registers each ``(shots, start, search_mm)`` it is sent."""
+    try:
+        os.nice(10)  # background work, before any thread starts (Linux threads inherit it): the camera loop keeps its core
+    except (AttributeError, OSError):
+        pass  # no nice here: it competes on equal terms
+    import numba
+
+    numba.set_num_threads(1)
+    pyramid = drr_pyramid(ct, (2, 4))
+    while True:
+        try:
+            shots, start, search_mm = conn.recv()
+        except EOFError:
+            return  # the daemon is gone
+        try:
+            conn.send(("ok", register_ct(pyramid, shots, start, search_mm=search_mm)))
+        except (DrillnavError, ValueError) as exc:
+            conn.send(("error", str(exc)))

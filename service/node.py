@@ -78,10 +78,7 @@ class RegistrationNode:
         self._shots_in: deque = deque(maxlen=4)
         self._wake = threading.Condition()
         self._stop = threading.Event()
-        self._last_overlay = 0.0
-        self._pe = None
-        self._pe_time = 0.0
-        self._pe_registration = -1
+        self._overlay_axis: tuple[Line3D, float, int] | None = None
         self._pub_axis = session.declare_publisher(key(prefix, "axis_carm"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_axis_ct = session.declare_publisher(key(prefix, "axis_ct"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._pub_status = session.declare_publisher(key(prefix, "status"), encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -93,7 +90,8 @@ class RegistrationNode:
         ]
         self._threads = [threading.Thread(target=self._frame_loop, name="node-frames", daemon=True),
                          threading.Thread(target=self._shot_loop, name="node-shots", daemon=True),
-                         threading.Thread(target=self._status_loop, name="node-status", daemon=True)]
+                         threading.Thread(target=self._status_loop, name="node-status", daemon=True),
+                         threading.Thread(target=self._overlay_loop, name="node-overlay", daemon=True)]
         for t in self._threads:
             t.start()
 
@@ -188,11 +186,7 @@ class RegistrationNode:
         axis = self.axis_drill.transformed(reg.carm_from_drill)
         centroid = np.mean([p.position_carm_mm for p in self.poses if p.marker_id in reg.used_ids], axis=0)
         work = axis.closest_point(centroid)
-        # The Monte-Carlo prediction changes slowly with the drill pose: refresh it twice a second, not per frame.
-        if self._pe is None or self._pe_registration != self.registration_id or time.monotonic() - self._pe_time > 0.5:
-            self._pe = predicted_axis_error(video, self.poses, reg, self.axis_drill, working_point_carm_mm=work, samples=32)
-            self._pe_time, self._pe_registration = time.monotonic(), self.registration_id
-        pe = self._pe
+        pe = predicted_axis_error(video, self.poses, reg, self.axis_drill, working_point_carm_mm=work)  # vectorised: ~1 ms
         now = time.time_ns()
         doc = {
             "stamp_ns": now, "frame_id": "carm", "point_mm": work.tolist(), "direction": axis.direction.tolist(),
@@ -214,11 +208,28 @@ class RegistrationNode:
         latency = (now - stamp) / 1e6
         self.counters.last_latency_ms = latency
         self.counters.latencies_ms.append(latency)
-        if time.monotonic() - self._last_overlay > self.overlay_period_s:
-            self._last_overlay = time.monotonic()
-            for name, shot in list(self.shots.items()):
-                bgr = draw_axis(draw_detections(to_display(shot.image), shot.detections), shot.view, axis, cone_half_angle_deg=pe.angle_deg)
-                self.session.put(key(self.prefix, "overlay", name), msg.compressed_image(bgr, stamp_ns=now, frame_id=f"carm/{name}", fmt="jpeg", quality=80))
+        with self._wake:
+            self._overlay_axis = (axis, pe.angle_deg, now)
+            self._wake.notify_all()
+
+    def _overlay_loop(self) -> None:
+        """Overlays of the newest axis on each held shot, at most every ``overlay_period_s``, off the frame path."""
+        base: dict[tuple[str, int], np.ndarray] = {}  # the shot drawn with its detections, kept per shot
+        while not self._stop.wait(self.overlay_period_s):
+            with self._wake:
+                while self._overlay_axis is None and not self._stop.is_set():
+                    self._wake.wait(0.2)
+                if self._stop.is_set():
+                    return
+                (axis, cone_deg, stamp), self._overlay_axis = self._overlay_axis, None
+            shots = dict(self.shots)
+            base = {k: v for k, v in base.items() if k[0] in shots and shots[k[0]].stamp_ns == k[1]}
+            for name, shot in shots.items():
+                k = (name, shot.stamp_ns)
+                if k not in base:
+                    base[k] = draw_detections(to_display(shot.image), shot.detections)
+                bgr = draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg)
+                self.session.put(key(self.prefix, "overlay", name), msg.compressed_image(bgr, stamp_ns=stamp, frame_id=f"carm/{name}", fmt="jpeg", quality=80))
 
     def status(self) -> dict:
         c = self.counters

@@ -6,7 +6,7 @@ import pytest
 from drillnav.registration import carm, transforms as tf
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.errors import DegenerateInput
-from drillnav.registration.horn import absolute_orientation
+from drillnav.registration.horn import absolute_orientation, absolute_orientation_batch
 from drillnav.registration.line import Line3D
 
 RNG = np.random.default_rng(7)
@@ -69,6 +69,16 @@ def test_horn_weights_ignore_outlier():
     fit = absolute_orientation(src, dst, w)
     np.testing.assert_allclose(fit.target_from_source, t, atol=1e-9)
     assert fit.residuals_mm[0] == pytest.approx(np.linalg.norm([30, 30, 30]), rel=1e-6)
+
+
+def test_horn_batch_matches_one_at_a_time():
+    src = RNG.normal(size=(20, 5, 3)) * 50
+    dst = np.stack([tf.apply(random_transform(RNG), p) for p in src]) + RNG.normal(scale=2.0, size=src.shape)
+    batch = absolute_orientation_batch(src, dst)
+    for b in range(len(src)):
+        np.testing.assert_allclose(batch[b], absolute_orientation(src[b], dst[b]).target_from_source, atol=1e-9)
+    with pytest.raises(DegenerateInput, match="shape"):
+        absolute_orientation_batch(src[:, :2], dst[:, :2])
 
 
 def test_horn_refuses_collinear():

@@ -307,4 +307,5 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     (rec,) = list((tmp_path / "rec").glob("session-*.mcap"))
     with open(rec, "rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
-    assert {"drillnav/camera/image", "drillnav/axis/carm", "drillnav/fluoro/shot"} <= topics
+    assert {"drillnav/camera/image", "drillnav/axis/carm", "drillnav/axis/ct", "drillnav/fluoro/shot"} <= topics, topics
+    assert sum(t.startswith("drillnav/overlay/") for t in topics) >= 2, topics
