@@ -120,7 +120,7 @@ def main() -> None:
     args = ap.parse_args()
     t = time.perf_counter()
     ct = make_pelvis_ct(seed=0, voxel_mm=(1.0, 1.0, 1.0))
-    pyramid = drr_pyramid(ct, (2, 4))
+    pyramid = drr_pyramid(ct, (1, 2, 4))
     print(f"twin CT {ct.shape} and pyramid in {time.perf_counter() - t:.1f} s")
     rows = twin_study(range(400, 400 + args.seeds), pyramid)
     figs = []

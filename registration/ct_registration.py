@@ -60,12 +60,15 @@ class Level:
     popsize: int
     max_evaluations: int
     tol_x: float = 0.02  # stop when CMA-ES's spread falls under this fraction of the initial one
+    step_voxels: float = 1.0  # DRR ray step in units of the level volume's smallest voxel
 
 
 # Pixel sizes at the isocentre for the paper's C-arm: about 2.6, 1.3 and 0.65 mm.
 COARSE = Level(volume_factor=4, detector_bin=16, sigma_mm=8.0, sigma_deg=3.0, popsize=14, max_evaluations=1100, tol_x=0.1)
 MEDIUM = Level(volume_factor=2, detector_bin=8, sigma_mm=1.5, sigma_deg=0.5, popsize=8, max_evaluations=800, tol_x=0.05)
-FINE = Level(volume_factor=2, detector_bin=4, sigma_mm=0.6, sigma_deg=0.2, popsize=8, max_evaluations=300, tol_x=0.1)
+# The full-resolution volume: a coarser one biases one view's depth by +0.3 mm (its blurred edges
+# trade magnification against pose); steps of 1.5 voxels and a small local search keep it fast.
+FINE = Level(volume_factor=1, detector_bin=4, sigma_mm=0.4, sigma_deg=0.1, popsize=6, max_evaluations=200, tol_x=0.15, step_voxels=1.5)
 # Two or more views fix depth at the medium level; one view needs the fine level's magnification cue.
 DEFAULT_LEVELS: tuple[Level, ...] = (COARSE, MEDIUM)
 SINGLE_VIEW_LEVELS: tuple[Level, ...] = (COARSE, replace(MEDIUM, max_evaluations=600, tol_x=0.1), FINE)
@@ -139,6 +142,7 @@ class _LevelProblem:
 
     def __init__(self, shots: list[FluoroShot], volume: DrrVolume, level: Level, border_px: int) -> None:
         self.volume = volume
+        self.step_mm = level.step_voxels * float(np.min(volume.spacing_mm))
         self.views: list[CArmView] = []
         self.fixed: list[tuple[NDArray[np.float32], NDArray[np.float32]]] = []
         self.valid: list[NDArray[np.bool_]] = []
@@ -168,7 +172,7 @@ class _LevelProblem:
     def similarity(self, carm_from_ct: NDArray[np.float64]) -> float:
         total = 0.0
         for view, (fx, fy), valid, buf in zip(self.views, self.fixed, self.valid, self.buffers):
-            drr = render_drr(self.volume, view, carm_from_ct, out=buf)
+            drr = render_drr(self.volume, view, carm_from_ct, out=buf, step_mm=self.step_mm)
             mx, my = _gradients(drr)
             total += 0.5 * (float(np.dot(fx, _normalised(mx[valid]))) + float(np.dot(fy, _normalised(my[valid]))))
         return total / len(self.views)
@@ -227,6 +231,9 @@ def register_ct(
     if levels is None:
         levels = SINGLE_VIEW_LEVELS if len(shots) == 1 else DEFAULT_LEVELS
     pyramid = ct if isinstance(ct, dict) else {lv.volume_factor: DrrVolume.from_ct(ct, downsample=lv.volume_factor) for lv in levels}
+    missing = sorted({lv.volume_factor for lv in levels} - set(pyramid))
+    if missing:
+        raise DegenerateInput(f"the DRR pyramid holds factors {sorted(pyramid)}, these levels also need {missing} (drr_pyramid(ct, {tuple(sorted({lv.volume_factor for lv in levels}))}))")
     centre = rotation_centre_mm([s.view for s in shots])
     current = np.asarray(carm_from_ct_initial, dtype=np.float64)
     outcomes: list[LevelOutcome] = []

@@ -215,7 +215,7 @@ def _worker_main(conn: Connection, ct: Volume) -> None:
     import numba
 
     numba.set_num_threads(1)
-    pyramid = drr_pyramid(ct, (2, 4))
+    pyramid = drr_pyramid(ct, (1, 2, 4))  # one view ends on the full-resolution volume
     while True:
         try:
             shots, start, search_mm = conn.recv()

@@ -24,6 +24,7 @@ from drillnav.schemas.topics import TOPICS, key
 from .api import create_app
 from .bus import open_session
 from .calibration_jobs import CalibrationJobs
+from .camera_pump import CameraPump
 from .node import RegistrationNode
 from .recorder import Recorder
 from .settings import Settings, SettingsError
@@ -69,7 +70,8 @@ class Daemon:
                 raise SettingsError("camera.calibration and camera.drill_calibration must name camera.json and drill.json (run the calibrations first)")
             marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
             camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
-            self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps)
+            self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps,
+                                        fourcc=s.camera.fourcc, exposure=s.camera.exposure)
         self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis, ct_tracker=self._ct_tracker())
         cal = s.calibration.folder
         self.calibration_jobs = CalibrationJobs(
@@ -155,17 +157,20 @@ class Daemon:
     # -- loops -----------------------------------------------------------------------------
     def _camera_loop(self) -> None:
         pub = self.session.declare_publisher(key(self.prefix, "camera_image"))
-        try:
-            with self.camera_device as cam:
-                while not self._stop.is_set():
-                    frame = cam.read()
-                    with self._frame_lock:
-                        self._latest_frame = (frame.stamp_ns, frame.image)
-                        self._frame_lock.notify_all()
-                    pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
-        except DrillnavError as exc:
-            self.errors.append(str(exc))
-            self._event("error", str(exc))
+
+        def on_frame(frame) -> None:
+            with self._frame_lock:
+                self._latest_frame = (frame.stamp_ns, frame.image)
+                self._frame_lock.notify_all()
+            pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
+
+        def on_event(level: str, message: str) -> None:
+            if level == "error":
+                self.errors.append(message)
+            self._event(level, message)
+
+        CameraPump(device=self.camera_device, name=str(self.settings.camera.device) if not self.settings.twin else "twin",
+                   on_frame=on_frame, on_event=on_event, stop=self._stop, retry_s=self.settings.camera.retry_s).run()
 
     def _dicom_loop(self) -> None:
         while not self._stop.is_set():

@@ -42,6 +42,9 @@ class CameraSettings(_Section):
     width: int = 1280
     height: int = 720
     fps: float = Field(30.0, gt=0, le=120)
+    fourcc: Literal["MJPG", "YUYV"] = "MJPG"
+    exposure: float | None = Field(None, description="V4L2 exposure (driver units); none: the camera's automatic exposure")
+    retry_s: float = Field(1.0, gt=0, description="how often a lost camera is reopened")
     calibration: Path | None = None
     drill_calibration: Path | None = None
 

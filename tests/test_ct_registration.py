@@ -52,6 +52,19 @@ def test_drr_matches_exact_line_integrals_of_the_twin_anatomy(ct, scene):
     assert abs(drr.mean() - exact.mean()) / exact.mean() < 0.01
 
 
+def test_drr_volume_cropped_to_its_attenuation_renders_the_same_image(ct, scene):
+    from drillnav.registration.volume import hu_to_mu
+
+    cropped = DrrVolume.from_ct(ct)
+    assert cropped.mu.size < 0.7 * np.prod(ct.shape)  # the air about the twin's body is gone
+    whole = DrrVolume(mu=np.ascontiguousarray(hu_to_mu(np.asarray(ct.data))), patient_from_voxel=ct.patient_from_voxel)
+    view = scene.views["inlet"].binned(8)
+    step = 0.5  # the same samples in both grids: the crop moves the clipped ray ends, not the sampled field
+    a = render_drr(cropped, view, scene.carm_from_ct, step_mm=step)
+    b = render_drr(whole, view, scene.carm_from_ct, step_mm=step)
+    assert np.abs(a - b).max() < 2e-3 * b.max()
+
+
 def test_gradient_correlation_bounds():
     rng = np.random.default_rng(0)
     img = rng.normal(size=(64, 64)).astype(np.float32)
@@ -96,7 +109,13 @@ def test_prealignment_captures_a_start_centimetres_away(ct, scene):
 def test_everything_masked_is_refused(ct, scene):
     shot = FluoroShot(view=scene.views["inlet"], image_log=scene.fluoro_log["inlet"], exclude=np.ones((976, 976), bool))
     with pytest.raises(DegenerateInput, match="usable pixels"):
-        register_ct(drr_pyramid(ct, (2, 4)), [shot], scene.carm_from_ct)
+        register_ct(drr_pyramid(ct, (1, 2, 4)), [shot], scene.carm_from_ct)
+
+
+def test_a_pyramid_without_a_level_s_volume_is_named(ct, scene):
+    shot = FluoroShot(view=scene.views["inlet"], image_log=scene.fluoro_log["inlet"])
+    with pytest.raises(DegenerateInput, match=r"also need \[1\]"):
+        register_ct(drr_pyramid(ct, (2, 4)), [shot], scene.carm_from_ct)  # one view ends on the full-resolution volume
 
 
 @pytest.fixture(scope="module")

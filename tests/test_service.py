@@ -237,6 +237,51 @@ def test_unplugged_camera_is_a_clear_error():
             pass
 
 
+def test_camera_unplugged_and_replugged_comes_back(tmp_path):
+    """A real OpenCV capture on a file that stands in for the device node: it vanishes (unplug) and returns (re-plug)."""
+    import cv2
+
+    from drillnav.drivers.webcam import Webcam
+    from drillnav.service.camera_pump import CameraPump
+
+    device = tmp_path / "video0.avi"
+    writer = cv2.VideoWriter(str(device), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
+    assert writer.isOpened()
+    for i in range(10):
+        writer.write(np.full((240, 320, 3), 20 * i, np.uint8))
+    writer.release()
+    frames, events, stop = [], [], threading.Event()
+    pump = CameraPump(device=Webcam(device=str(device), reconnect_attempts=1, reconnect_interval_s=0.05), name=str(device),
+                      on_frame=frames.append, on_event=lambda level, m: events.append((level, m)), stop=stop, retry_s=0.1)
+    t = threading.Thread(target=pump.run, daemon=True)
+    t.start()
+
+    def wait_for(cond, timeout=10.0):
+        t0 = time.monotonic()
+        while not cond() and time.monotonic() - t0 < timeout:
+            time.sleep(0.02)
+        return cond()
+
+    try:
+        assert wait_for(lambda: len(frames) >= 5) and frames[0].image.shape == (240, 320, 3) and frames[0].stamp_ns > 0
+        device.rename(tmp_path / "unplugged.avi")
+        assert wait_for(lambda: any(level == "error" for level, _ in events)), events
+        (level, message), = events
+        assert str(device) in message and "retrying every 0.1 s" in message and not pump.connected
+        n = len(frames)
+        time.sleep(0.5)
+        assert len(frames) == n  # nothing while unplugged, and the loop is still alive
+        assert t.is_alive()
+        (tmp_path / "unplugged.avi").rename(device)
+        assert wait_for(lambda: ("info", f"camera {device} is back") in events), events
+        assert wait_for(lambda: len(frames) > n + 5)
+        assert pump.losses == 1 and pump.errors == [message]
+    finally:
+        stop.set()
+        t.join(timeout=5)
+    assert not t.is_alive()
+
+
 def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     """The whole daemon in a subprocess: twin camera, C-arm shots through the watched folder, axis on zenoh, SIGTERM."""
     ep = endpoints()
