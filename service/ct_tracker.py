@@ -88,6 +88,11 @@ class CtTracker:
             self._lock.notify_all()
 
     @property
+    def worker_pid(self) -> int | None:
+        """The registration worker's process id (None before the first registration)."""
+        return self._worker.pid if self._worker is not None and self._worker.is_alive() else None
+
+    @property
     def busy(self) -> bool:
         return self._pending is not None
 
@@ -135,7 +140,10 @@ class CtTracker:
             self._worker.start()
             child.close()
         assert self._conn is not None
-        self._conn.send((shots, start, search_mm))
+        try:
+            self._conn.send((shots, start, search_mm))
+        except OSError as exc:  # the worker went between the check and the send
+            raise DrillnavError(f"the CT registration worker is gone ({exc}); it restarts with the next shot") from None
         while not self._conn.poll(0.2):
             if self._stop.is_set():
                 raise _WorkerStopped
@@ -143,8 +151,9 @@ class CtTracker:
                 raise DrillnavError(f"the CT registration worker died (exit code {self._worker.exitcode}); it restarts with the next shot")
         try:
             kind, value = self._conn.recv()
-        except EOFError:
-            raise DrillnavError("the CT registration worker closed its pipe mid-registration; it restarts with the next shot") from None
+        except EOFError:  # its end of the pipe closed: it died
+            self._worker.join(timeout=5)
+            raise DrillnavError(f"the CT registration worker died (exit code {self._worker.exitcode}); it restarts with the next shot") from None
         if kind == "error":
             raise DrillnavError(value)
         return value
