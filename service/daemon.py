@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import sys
 import threading
 import time
 from pathlib import Path
@@ -95,6 +96,9 @@ class Daemon:
         # half minute, which cost camera frames, become ~1 ms ones.
         gc.collect()
         gc.freeze()
+        # A thread that computes in Python (marker detection after a shot) hands the GIL over after 1 ms, not 5:
+        # the frame thread waits at most that long at each of its hand-overs.
+        sys.setswitchinterval(0.001)
         if self.carm is not None:
             for view in self.carm.scene.views:
                 self.carm.shoot(view)
