@@ -10,9 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from .errors import DegenerateInput
-from .transforms import apply, check_points, from_quaternion
+from .transforms import apply, check_points, make_transform
 
 __all__ = ["RigidFit", "absolute_orientation", "absolute_orientation_batch"]
 
@@ -59,19 +60,8 @@ def absolute_orientation(
     if np.linalg.matrix_rank(s0[w > 0], tol=1e-6 * max(1.0, np.abs(s0).max())) < 2:
         raise DegenerateInput("source points are collinear: the rotation about their line is undetermined")
     m = (s0 * wn[:, None]).T @ d0  # M[a, b] = sum w s_a d_b
-    sxx, sxy, sxz = m[0]
-    syx, syy, syz = m[1]
-    szx, szy, szz = m[2]
-    n_mat = np.array([
-        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
-        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ])
-    vals, vecs = np.linalg.eigh(n_mat)
-    q = vecs[:, np.argmax(vals)]
-    t = from_quaternion(q)
-    t[:3, 3] = cd - t[:3, :3] @ cs
+    rot = _rotations(m[None])[0]
+    t = make_transform(rot, cd - rot @ cs)
     res = np.linalg.norm(apply(t, s) - d, axis=1)
     return RigidFit(target_from_source=t, residuals_mm=res, fre_mm=float(np.sqrt(wn @ res**2)))
 
@@ -94,7 +84,17 @@ def absolute_orientation_batch(source_points: ArrayLike, target_points: ArrayLik
     if s.ndim != 3 or s.shape[2] != 3 or s.shape != d.shape or s.shape[1] < 3:
         raise DegenerateInput(f"expected two (B, N>=3, 3) point arrays of one shape, got {s.shape} and {d.shape}")
     cs, cd = s.mean(axis=1), d.mean(axis=1)
-    m = np.einsum("bna,bnc->bac", s - cs[:, None], d - cd[:, None]) / s.shape[1]
+    rot = _rotations(np.einsum("bna,bnc->bac", s - cs[:, None], d - cd[:, None]) / s.shape[1])
+    out = np.zeros((s.shape[0], 4, 4))
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = cd - np.einsum("bij,bj->bi", rot, cs)
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _rotations(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(B, 3, 3) rotations maximising ``trace(R M)`` for cross-covariances ``M[a, b] = sum w s_a d_b`` (B, 3, 3):
+    the unit quaternion of the largest eigenvalue of Horn's symmetric 4x4 matrix."""
     (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = m[:, 0].T, m[:, 1].T, m[:, 2].T
     n_mat = np.stack([
         np.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], axis=-1),
@@ -104,13 +104,4 @@ def absolute_orientation_batch(source_points: ArrayLike, target_points: ArrayLik
     ], axis=-2)
     _, vecs = np.linalg.eigh(n_mat)
     w, x, y, z = vecs[:, :, -1].T  # eigh sorts ascending: the last vector has the largest eigenvalue
-    rot = np.stack([
-        np.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
-        np.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], axis=-1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], axis=-1),
-    ], axis=-2)
-    out = np.zeros((s.shape[0], 4, 4))
-    out[:, :3, :3] = rot
-    out[:, :3, 3] = cd - np.einsum("bij,bj->bi", rot, cs)
-    out[:, 3, 3] = 1.0
-    return out
+    return Rotation.from_quat(np.stack([x, y, z, w], axis=-1)).as_matrix()  # scipy wants the scalar last

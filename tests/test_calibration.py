@@ -8,31 +8,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drillnav.drivers.sim.camera import checkerboard_texture, render_plane
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA as AXIS
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.camera_calibration import calibrate_camera, detect_board, parse_board
-from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_board, jig_pose, jig_size_mm
+from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm
 from drillnav.registration.errors import DegenerateInput
 from drillnav.registration.transforms import make_transform
 from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
 from drillnav.service.cli import main
+
+from twin_images import board_views as shared_board_views  # noqa: E402
+from twin_images import jig_frames as shared_jig_frames  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TRUE = PinholeCamera.from_fov(width=1280, height=720, horizontal_fov_deg=76, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
 
 
 def board_views(n, *, tilt_deg=30.0, seed=0):
-    rng = np.random.default_rng(seed)
-    tex = checkerboard_texture(9, 6)
-    size = (12 * 25.0, 9 * 25.0)  # 9x6 inner corners + 1 + a white square each side
-    views = []
-    for _ in range(n):
-        r = Rotation.from_euler("xyz", [rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-20, 20)], degrees=True).as_matrix()
-        centre = np.array([rng.uniform(-40, 40), rng.uniform(-25, 25), rng.uniform(380, 480)])
-        t = centre - r @ np.array([size[0] / 2, size[1] / 2, 0])
-        views.append(render_plane(camera=TRUE, camera_from_plane=make_transform(r, t), texture=tex, size_mm=size, rng=rng))
-    return views
+    return shared_board_views(TRUE, n, tilt_deg=tilt_deg, seed=seed)
 
 
 @pytest.fixture(scope="module")
@@ -90,20 +83,7 @@ def test_real_charuco_photo(tmp_path):
 
 
 def jig_frames(n=8, span=120.0, seed=0):
-    rng = np.random.default_rng(seed)
-    s = jig_size_mm()
-    tex = jig_board().generateImage((800, 800), marginSize=0)
-    c = AXIS.at([150.0])[0]
-    z = AXIS.direction
-    x = np.cross([0, 1, 0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    base = make_transform(np.stack([x, y, z], 1) @ Rotation.from_euler("x", 20, degrees=True).as_matrix(), c - s / 2 * x - s / 2 * y + 30 * x)
-    frames = []
-    for th in np.linspace(-span / 2, span / 2, n):
-        r = Rotation.from_rotvec(np.radians(th) * z).as_matrix()
-        frames.append(render_plane(camera=TRUE, camera_from_plane=make_transform(r, c - r @ c) @ base, texture=tex, size_mm=(s, s), rng=rng))
-    return frames
+    return shared_jig_frames(TRUE, AXIS, n, span_deg=span, seed=seed)
 
 
 def test_drill_axis_both_methods():

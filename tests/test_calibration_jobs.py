@@ -12,14 +12,15 @@ import httpx
 import numpy as np
 import pytest
 import uvicorn
-from scipy.spatial.transform import Rotation
 
 from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.drill_axis import jig_board, jig_size_mm
-from drillnav.registration.transforms import make_transform
+from drillnav.registration.line import Line3D
 from drillnav.schemas.calibration import write_camera_calibration
 from drillnav.service.api import create_app
 from drillnav.service.calibration_jobs import CalibrationJobs, JobKind, JobNotSucceeded
+
+from twin_images import board_views as shared_board_views  # noqa: E402
+from twin_images import jig_frames as shared_jig_frames  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TOKEN = "calib-token"
@@ -31,51 +32,17 @@ AXIS_POINT_MM = np.array([10.0, 15.0, 0.0])
 AXIS_DIRECTION = np.array([0.05, -0.03, 1.0]) / np.linalg.norm([0.05, -0.03, 1.0])
 
 
-# -- twin images: a textured plane warped through the true pinhole (no lens distortion) ---------------------
-
-
-def render_plane(camera_from_plane, texture, mm_per_px, rng, *, origin_px=0.0):
-    """The texture lying on the plane z=0 (mm, texture px (u, v) at ((u - origin) * mm_per_px, ...)) seen by TRUE."""
-    s = np.array([[mm_per_px, 0, -origin_px * mm_per_px], [0, mm_per_px, -origin_px * mm_per_px], [0, 0, 1]])
-    h = K @ camera_from_plane[:3][:, [0, 1, 3]] @ s
-    img = cv2.warpPerspective(texture, h, (TRUE.width, TRUE.height), flags=cv2.INTER_AREA, borderValue=110)
-    img = cv2.GaussianBlur(img, (0, 0), 0.6).astype(float) + rng.normal(0, 1.5, img.shape)
-    return np.clip(img, 0, 255).astype(np.uint8)
+# -- twin images: through the true (undistorted 640x480) camera ------------------------------------------------
 
 
 def board_views(n, *, seed=0):
     """Checkerboard 9x6 inner corners, 25 mm squares, one white square of margin; tilted up to 30 deg."""
-    rng = np.random.default_rng(seed)
-    px = 40
-    yy, xx = np.mgrid[0:9, 0:12]
-    tex = np.where((xx + yy) % 2 == 0, 30, 225).astype(np.uint8)
-    tex[[0, -1]], tex[:, [0, -1]] = 225, 225
-    tex = cv2.resize(tex, (12 * px, 9 * px), interpolation=cv2.INTER_NEAREST)
-    views = []
-    for _ in range(n):
-        r = Rotation.from_euler("xyz", [rng.uniform(-30, 30), rng.uniform(-30, 30), rng.uniform(-15, 15)], degrees=True).as_matrix()
-        centre = np.array([rng.uniform(-20, 20), rng.uniform(-15, 15), rng.uniform(430, 480)])
-        t = centre - r @ np.array([150.0, 112.5, 0])
-        views.append(render_plane(make_transform(r, t), tex, 25.0 / px, rng))
-    return views
+    return shared_board_views(TRUE, n, spin_deg=15.0, offset_mm=(20.0, 15.0), distance_mm=(430.0, 480.0), seed=seed)
 
 
 def jig_frames(n=8, span_deg=120.0, seed=0):
     """The ArUco jig turning about the true drill axis, 150 mm in front of the camera."""
-    rng = np.random.default_rng(seed)
-    s, px, pad = jig_size_mm(), 600, 60
-    tex = cv2.copyMakeBorder(jig_board().generateImage((px, px), marginSize=0), pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
-    z = AXIS_DIRECTION
-    c = AXIS_POINT_MM + 150.0 * z
-    x = np.cross([0, 1, 0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    base = make_transform(np.stack([x, y, z], 1) @ Rotation.from_euler("x", 20, degrees=True).as_matrix(), c - s / 2 * x - s / 2 * y + 30 * x)
-    frames = []
-    for th in np.linspace(-span_deg / 2, span_deg / 2, n):
-        r = Rotation.from_rotvec(np.radians(th) * z).as_matrix()
-        frames.append(render_plane(make_transform(r, c - r @ c) @ base, tex, s / px, rng, origin_px=pad))
-    return frames
+    return shared_jig_frames(TRUE, Line3D(point_mm=AXIS_POINT_MM, direction=AXIS_DIRECTION), n, span_deg=span_deg, seed=seed)
 
 
 def png(image):

@@ -1,0 +1,53 @@
+"""Twin calibration images shared by the tests: checkerboard views and the drill-axis jig turning about an axis.
+
+Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera.
+"""
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from drillnav.drivers.sim.camera import checkerboard_texture, render_plane
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.drill_axis import jig_board, jig_size_mm
+from drillnav.registration.line import Line3D
+from drillnav.registration.transforms import make_transform
+
+BOARD_SIZE_MM = (12 * 25.0, 9 * 25.0)  # 9x6 inner corners of 25 mm + 1 + a white square each side
+
+
+def board_views(camera: PinholeCamera, n: int, *, tilt_deg: float = 30.0, spin_deg: float = 20.0, offset_mm=(40.0, 25.0),
+                distance_mm=(380.0, 480.0), seed: int = 0) -> list[np.ndarray]:
+    """``n`` views of the 9x6 checkerboard, tilted up to ``tilt_deg``, spun up to ``spin_deg``, centred within
+    ``offset_mm`` of the optical axis at ``distance_mm``."""
+    rng = np.random.default_rng(seed)
+    tex = checkerboard_texture(9, 6)
+    views = []
+    for _ in range(n):
+        r = Rotation.from_euler("xyz", [rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-tilt_deg, tilt_deg), rng.uniform(-spin_deg, spin_deg)], degrees=True).as_matrix()
+        centre = np.array([rng.uniform(-offset_mm[0], offset_mm[0]), rng.uniform(-offset_mm[1], offset_mm[1]), rng.uniform(*distance_mm)])
+        t = centre - r @ np.array([BOARD_SIZE_MM[0] / 2, BOARD_SIZE_MM[1] / 2, 0])
+        views.append(render_plane(camera=camera, camera_from_plane=make_transform(r, t), texture=tex, size_mm=BOARD_SIZE_MM, rng=rng))
+    return views
+
+
+def jig_frames(camera: PinholeCamera, axis: Line3D, n: int = 8, span_deg: float = 120.0, seed: int = 0) -> list[np.ndarray]:
+    """The ArUco jig turning about ``axis`` (camera frame), 150 mm along it from its point, over ``span_deg``."""
+    rng = np.random.default_rng(seed)
+    s = jig_size_mm()
+    px, pad = 800, 80  # the printed jig keeps a white quiet zone about the board
+    tex = cv2.copyMakeBorder(jig_board().generateImage((px, px), marginSize=0), pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
+    pad_mm = pad * s / px
+    board_from_print = make_transform(np.eye(3), [-pad_mm, -pad_mm, 0.0])
+    c = axis.at([150.0])[0]
+    z = axis.direction
+    x = np.cross([0, 1, 0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    base = make_transform(np.stack([x, y, z], 1) @ Rotation.from_euler("x", 20, degrees=True).as_matrix(), c - s / 2 * x - s / 2 * y + 30 * x)
+    frames = []
+    for th in np.linspace(-span_deg / 2, span_deg / 2, n):
+        r = Rotation.from_rotvec(np.radians(th) * z).as_matrix()
+        frames.append(render_plane(camera=camera, camera_from_plane=make_transform(r, c - r @ c) @ base @ board_from_print, texture=tex,
+                                   size_mm=(s + 2 * pad_mm, s + 2 * pad_mm), rng=rng))
+    return frames
