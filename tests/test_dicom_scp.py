@@ -9,6 +9,7 @@ import pytest
 
 from drillnav.drivers.dicom_scp import DicomNetworkError, StoreScp, send_files
 from drillnav.drivers.sim.dicom_io import write_xa
+from conftest import free_port
 
 
 @pytest.fixture()
@@ -19,10 +20,11 @@ def xa(tmp_path):
 
 def test_store_from_a_separate_process(tmp_path, xa):
     stored = []
-    with StoreScp(port=11131, storage_dir=tmp_path / "in", on_stored=stored.append) as scp:
+    port = free_port()
+    with StoreScp(port=port, storage_dir=tmp_path / "in", on_stored=stored.append) as scp:
         code = (
             "from drillnav.drivers.dicom_scp import send_files; import sys;"
-            f"print(send_files(host='127.0.0.1', port=11131, called_ae='DRILLNAV', paths=[r'{xa}']))"
+            f"print(send_files(host='127.0.0.1', port={port}, called_ae='DRILLNAV', paths=[r'{xa}']))"
         )
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
         assert out.returncode == 0, out.stderr
@@ -34,19 +36,21 @@ def test_store_from_a_separate_process(tmp_path, xa):
 
 
 def test_calling_ae_not_allowed(tmp_path, xa):
-    with StoreScp(port=11132, storage_dir=tmp_path / "in", allowed_calling_aes={"CARM1"}):
+    port = free_port()
+    with StoreScp(port=port, storage_dir=tmp_path / "in", allowed_calling_aes={"CARM1"}):
         with pytest.raises(DicomNetworkError, match="rejected"):
-            send_files(host="127.0.0.1", port=11132, called_ae="DRILLNAV", paths=[xa], calling_ae="INTRUDER")
-        assert send_files(host="127.0.0.1", port=11132, called_ae="DRILLNAV", paths=[xa], calling_ae="CARM1") == [0]
+            send_files(host="127.0.0.1", port=port, called_ae="DRILLNAV", paths=[xa], calling_ae="INTRUDER")
+        assert send_files(host="127.0.0.1", port=port, called_ae="DRILLNAV", paths=[xa], calling_ae="CARM1") == [0]
 
 
 def test_unknown_sop_class_is_not_accepted(tmp_path, xa):
     ds = pydicom.dcmread(str(xa))
     ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.2"  # CT Image Storage
     ds.save_as(str(tmp_path / "ct.dcm"))
-    with StoreScp(port=11133, storage_dir=tmp_path / "in") as scp:
+    port = free_port()
+    with StoreScp(port=port, storage_dir=tmp_path / "in") as scp:
         with pytest.raises(DicomNetworkError):
-            send_files(host="127.0.0.1", port=11133, called_ae="DRILLNAV", paths=[tmp_path / "ct.dcm"])
+            send_files(host="127.0.0.1", port=port, called_ae="DRILLNAV", paths=[tmp_path / "ct.dcm"])
         assert scp.stored == []
 
 
@@ -54,6 +58,7 @@ def test_unwritable_storage_is_not_acknowledged(tmp_path, xa):
     uid = pydicom.dcmread(str(xa)).SOPInstanceUID
     (tmp_path / "in").mkdir()
     (tmp_path / "in" / f"{uid}.dcm").mkdir()  # the file cannot be put in place: the store must fail
-    with StoreScp(port=11134, storage_dir=tmp_path / "in") as scp:
-        statuses = send_files(host="127.0.0.1", port=11134, called_ae="DRILLNAV", paths=[xa])
+    port = free_port()
+    with StoreScp(port=port, storage_dir=tmp_path / "in") as scp:
+        statuses = send_files(host="127.0.0.1", port=port, called_ae="DRILLNAV", paths=[xa])
         assert statuses == [0xA700] and scp.stored == []

@@ -12,6 +12,7 @@ from drillnav.registration.line import Line3D
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
 from drillnav.service.bus import open_session
+from conftest import free_endpoint
 from drillnav.service.cli import main
 from drillnav.service.node import RegistrationNode
 from drillnav.service.replay import RecordingUnreadable, iter_recording, replay
@@ -29,7 +30,7 @@ def test_recording_holds_the_streams():
 def test_replay_through_the_node_matches_truth():
     scene = make_scene(seed=21, render=False)  # the product's inputs: marker design, calibrations with error
     truth, axes = {}, []
-    ep = "tcp/127.0.0.1:17398"
+    ep = free_endpoint()
     with open_session(listen=[ep]) as player, open_session(connect=[ep]) as node_session:
         node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill)
         node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))

@@ -26,12 +26,11 @@ from drillnav.service.bus import open_session
 from drillnav.service.recorder import Recorder
 from drillnav.service.settings import SettingsError, load_settings
 
-PORT = iter(range(17400, 17450))
+from conftest import free_endpoint, free_port
 
 
 def endpoints():
-    port = next(PORT)
-    return f"tcp/127.0.0.1:{port}"
+    return free_endpoint()
 
 
 def test_messages_round_trip():
@@ -184,7 +183,8 @@ class FakeState:
 @pytest.fixture()
 def http_server():
     state = FakeState()
-    config = uvicorn.Config(create_app(state=state), host="127.0.0.1", port=18081, log_level="warning")
+    port = free_port()
+    config = uvicorn.Config(create_app(state=state), host="127.0.0.1", port=port, log_level="warning")
     server = uvicorn.Server(config)
     t = threading.Thread(target=server.run, daemon=True)
     t.start()
@@ -192,7 +192,7 @@ def http_server():
         if server.started:
             break
         time.sleep(0.05)
-    yield state, "http://127.0.0.1:18081"
+    yield state, f"http://127.0.0.1:{port}"
     server.should_exit = True
     t.join(5)
 
@@ -285,10 +285,12 @@ def test_camera_unplugged_and_replugged_comes_back(tmp_path):
 def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     """The whole daemon in a subprocess: twin camera, C-arm shots through the watched folder, axis on zenoh, SIGTERM."""
     ep = endpoints()
+    api_port, scp_port = free_port(), free_port()
+    base = f"http://127.0.0.1:{api_port}"
     cfg = tmp_path / "drillnav.toml"
     cfg.write_text(
-        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18082\ntoken = "test-token-1"\n'
-        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = 11140\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\n'
+        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "test-token-1"\n'
+        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = {scp_port}\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\n'
         f'[calibration]\nfolder = "{tmp_path / "cal"}"\n'
     )
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -311,7 +313,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and isinstance(c["conformance"]["breach"], bool)
         a = axes[-1]
         assert a["frame_id"] == "carm" and abs(np.linalg.norm(a["direction"]) - 1) < 1e-6 and a["predicted_error"]["position_mm"] > 0
-        status = httpx.get("http://127.0.0.1:18082/status", timeout=5).json()
+        status = httpx.get(f"{base}/status", timeout=5).json()
         assert status["state"] == "registered" and status["axes_published"] >= 10
         # A shot sent by C-STORE from this (separate) process leads to a new registration within 5 s.
         from drillnav.drivers.dicom_scp import send_files
@@ -326,15 +328,15 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         shot = tmp_path / "new-shot.dcm"
         ds.save_as(shot, enforce_file_format=True)
         t0 = time.monotonic()
-        assert send_files(host="127.0.0.1", port=11140, called_ae="DRILLNAV", paths=[shot]) == [0]
-        while time.monotonic() - t0 < 5.0 and httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] == before:
+        assert send_files(host="127.0.0.1", port=scp_port, called_ae="DRILLNAV", paths=[shot]) == [0]
+        while time.monotonic() - t0 < 5.0 and httpx.get(f"{base}/status", timeout=5).json()["registration_id"] == before:
             time.sleep(0.1)
-        assert httpx.get("http://127.0.0.1:18082/status", timeout=5).json()["registration_id"] > before
+        assert httpx.get(f"{base}/status", timeout=5).json()["registration_id"] > before
         # A live calibration job captures the daemon's own camera frames; the twin's field holds no board, so it fails and says why.
         auth = {"Authorization": "Bearer test-token-1"}
-        r = httpx.post("http://127.0.0.1:18082/calibration/jobs", data={"kind": "camera", "board": "checkerboard:9x6:25mm", "live_seconds": "1", "live_fps": "5"}, headers=auth, timeout=10)
+        r = httpx.post(f"{base}/calibration/jobs", data={"kind": "camera", "board": "checkerboard:9x6:25mm", "live_seconds": "1", "live_fps": "5"}, headers=auth, timeout=10)
         assert r.status_code == 202, r.text
-        job_url = f"http://127.0.0.1:18082/calibration/jobs/{r.json()['id']}"
+        job_url = f"{base}/calibration/jobs/{r.json()['id']}"
         t0 = time.monotonic()
         while time.monotonic() - t0 < 30 and (job := httpx.get(job_url, timeout=5).json())["state"] not in ("succeeded", "failed", "cancelled"):
             time.sleep(0.2)
@@ -343,7 +345,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         # A corrupt DICOM dropped in the watched folder is refused with an event, and nothing stops.
         (tmp_path / "in" / "broken.dcm").write_bytes(b"garbage" * 10)
         time.sleep(2.0)
-        status = httpx.get("http://127.0.0.1:18082/status", timeout=5).json()
+        status = httpx.get(f"{base}/status", timeout=5).json()
         assert any("broken.dcm" in e for e in status["device_errors"])
     finally:
         proc.send_signal(signal.SIGTERM)

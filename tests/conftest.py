@@ -1,0 +1,19 @@
+"""Shared test plumbing: ports the OS hands out, so two suites on one machine never meet."""
+
+import socket
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (bound to 0, read back, released)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def free_endpoint() -> str:
+    """A zenoh TCP endpoint on loopback at a free port."""
+    return f"tcp/127.0.0.1:{free_port()}"
