@@ -47,9 +47,9 @@ def site(tmp_path_factory) -> Path:
     return site
 
 
-def _daemon_section(site: Path, endpoint: str, **access) -> ZenohSettings:
+def _daemon_section(site: Path, endpoint: str, *also_listen: str, **access) -> ZenohSettings:
     return ZenohSettings(
-        mode="peer", listen=[endpoint], prefix=PREFIX,
+        mode="peer", listen=[endpoint, *also_listen], prefix=PREFIX,
         tls={"ca": site / "ca.pem", "certificate": site / "drillnav-daemon.pem", "private_key": site / "drillnav-daemon.key", "mutual": True},
         access_control={"enabled": True, "cameras": ["camera-1"], "carms": ["carm-1"], **access},
     )
@@ -95,8 +95,9 @@ def _forge(session, key: str, payload: bytes, times: int = 5) -> None:
 
 def test_unauthorised_peers_cannot_publish_an_axis_or_inject_a_shot(site):
     endpoint = f"tls/127.0.0.1:{free_port()}"
+    local = f"tcp/127.0.0.1:{free_port()}"  # a plain loopback listener too, for tools on the daemon's machine
     display, daemon_inbox = Inbox(), Inbox()
-    with open_session(_daemon_section(site, endpoint, readers=["display-1"])) as daemon:
+    with open_session(_daemon_section(site, endpoint, local, readers=["display-1"])) as daemon:
         daemon.declare_subscriber(SHOT, daemon_inbox)
         daemon.declare_subscriber(f"{PREFIX}/camera/**", daemon_inbox)
         with _client(site, endpoint, "display-1") as reader:
@@ -113,6 +114,16 @@ def test_unauthorised_peers_cannot_publish_an_axis_or_inject_a_shot(site):
             rogue = site.parent / "rogue"
             with pytest.raises(BusError, match="could not open"):
                 open_session(mode="client", connect=[endpoint], tls={"ca": site / "ca.pem", "certificate": rogue / "drillnav-daemon.pem", "private_key": rogue / "drillnav-daemon.key"})
+
+            # no credentials, through the plain listener: the session opens, access control drops what it sends
+            anonymous_inbox = Inbox()
+            with open_session(mode="peer", connect=[local]) as anonymous:
+                anonymous.declare_subscriber(f"{PREFIX}/**", anonymous_inbox)
+                _forge(anonymous, AXIS, b"forged-anonymously")
+                _forge(anonymous, SHOT, b"shot-anonymously")
+                time.sleep(0.2)
+                daemon.put(AXIS, b"axis-not-for-strangers")
+                time.sleep(0.2)
 
             # the site's certificates, the wrong roles: a display and a camera forging axes and shots
             with _client(site, endpoint, "display-1") as forger:
@@ -138,6 +149,9 @@ def test_unauthorised_peers_cannot_publish_an_axis_or_inject_a_shot(site):
     assert not {p for p in axes if p.startswith(b"forged")}, axes
     shots = set(daemon_inbox.payloads(SHOT))
     assert shots == {b"shot-by-carm"}, shots
+    # with readers named, a stranger does not even read (its own puts reach its own subscriber, inside its session)
+    assert b"axis-not-for-strangers" in axes
+    assert [p for p in anonymous_inbox.payloads() if not p.endswith(b"anonymously")] == []
     assert not any(p.startswith(b"shot-by") and p != b"shot-by-carm" for p in display.payloads())
 
 
