@@ -23,6 +23,7 @@ import zenoh
 
 from conftest import free_port
 from drillnav.service.bus import BusError, open_session
+from drillnav.service.bus_policy import is_loopback
 from drillnav.service.pki import init_ca, issue
 from drillnav.service.settings import SettingsError, ZenohSettings, load_settings
 
@@ -304,3 +305,28 @@ def test_a_peer_without_endpoints_listens_nowhere():
 def test_the_generated_key_files_are_private(site):
     for key in site.glob("*.key"):
         assert os.stat(key).st_mode & 0o777 == 0o600, key
+
+
+@pytest.mark.parametrize("interfaces, arrives", [(["lo"], True), (["nosuchif0"], False)])
+def test_names_can_be_bound_to_a_network_interface(site, interfaces, arrives):
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    inbox = Inbox()
+    with open_session(_daemon_section(site, endpoint, interfaces=interfaces)) as daemon:
+        daemon.declare_subscriber(f"{PREFIX}/camera/**", inbox)
+        with _client(site, endpoint, "camera-1") as camera:
+            if arrives:
+                inbox.wait_for(b"frame", publish=lambda: camera.put(f"{PREFIX}/camera/image", b"frame"))
+            else:
+                _forge(camera, f"{PREFIX}/camera/image", b"frame", times=20)
+                time.sleep(0.2)
+    assert (b"frame" in inbox.payloads()) is arrives
+
+
+@pytest.mark.parametrize("endpoint, loopback", [
+    ("tcp/127.0.0.1:7447", True), ("tls/127.0.0.2:7447", True), ("tcp/[::1]:7447", True), ("tcp/localhost:7447", True),
+    ("unixsock-stream//run/drillnav.sock", True), ("tcp/127.0.0.1:7447?iface=lo", True),
+    ("tcp/0.0.0.0:7447", False), ("tcp/[::]:7447", False), ("tls/navcart.local:7447", False),
+    ("tcp/192.168.1.20:7447", False), ("serial//dev/ttyUSB0", False),
+])
+def test_what_counts_as_loopback(endpoint, loopback):
+    assert is_loopback(endpoint) is loopback
