@@ -1,28 +1,110 @@
-"""The zenoh session: an embedded peer by default (no router needed), router/client for multi-host set-ups."""
+"""The zenoh session: an embedded peer by default (no router needed), router/client for multi-host set-ups.
+
+Security comes from zenoh itself, configured from drillnav's ``[zenoh]``
+settings (docs/security.md): TLS on the links (the site CA, this node's
+certificate and key, mutual TLS), zenoh's user/password authentication, and
+access control (``bus_policy.access_control_config``). The settings are
+checked before a session opens, so a bus that would reach the network
+unsecured is refused with the reason, never opened.
+"""
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from typing import Any
 
 import zenoh
+from pydantic import ValidationError
 
-__all__ = ["zenoh_config", "open_session"]
+from drillnav.registration.errors import DrillnavError
+
+from .bus_policy import access_control_config, endpoint_protocol
+from .settings import SettingsError, ZenohSettings, describe_validation_error
+
+__all__ = ["BusError", "zenoh_config", "open_session", "bus_section"]
 
 
-def zenoh_config(*, mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (), multicast_scouting: bool = False) -> zenoh.Config:
-    if mode not in ("peer", "client", "router"):
-        raise ValueError(f"zenoh mode must be peer, client or router, got '{mode}'")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "true" if multicast_scouting else "false")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+class BusError(DrillnavError):
+    """The zenoh session could not be opened (nothing to connect to, a TLS handshake refused, a port taken)."""
+
+
+def bus_section(section: ZenohSettings | None = None, /, **fields: Any) -> ZenohSettings:
+    """A checked ``[zenoh]`` section: ``section`` with ``fields`` replaced.
+
+    Without a section the base is a bare peer that listens nowhere (not the
+    daemon's default listener), as a tool or test connecting to a daemon wants.
+    """
+    base = section if section is not None else ZenohSettings(listen=[])
+    if not fields:
+        base.check()  # files can vanish between reading the settings and opening the bus
+        return base
+    try:
+        return ZenohSettings.model_validate({**base.model_dump(), **fields})
+    except ValidationError as exc:
+        raise SettingsError(describe_validation_error(exc, prefix="zenoh")) from None
+
+
+def _tls(section: ZenohSettings) -> dict | None:
+    t = section.tls
+    if t.ca is None and t.certificate is None:
+        return None
+    conf: dict[str, Any] = {
+        "enable_mtls": t.mutual,
+        "close_link_on_expiration": True,  # an expired certificate ends the link, not only the next handshake
+    }
+    if t.ca is not None:
+        conf["root_ca_certificate"] = str(t.ca)
+    if t.certificate is not None:
+        # one identity per node: a zenoh peer both accepts and opens links
+        for side in ("listen", "connect"):
+            conf[f"{side}_certificate"] = str(t.certificate)
+            conf[f"{side}_private_key"] = str(t.private_key)
     return conf
 
 
-def open_session(**kwargs) -> zenoh.Session:
-    """Open a session (use as a context manager); kwargs as :func:`zenoh_config`."""
-    return zenoh.open(zenoh_config(**kwargs))
+def zenoh_config(section: ZenohSettings) -> zenoh.Config:
+    """The ``zenoh.Config`` for a checked ``[zenoh]`` section."""
+    section.check()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(section.mode))
+    conf.insert_json5("scouting/multicast/enabled", "true" if section.multicast_scouting else "false")
+    # Always explicit, even when empty: zenoh's default for a peer without endpoints is tcp/[::]:0, an unsecured
+    # listener on every interface that gossip then advertises, which would bypass everything below.
+    conf.insert_json5("listen/endpoints", json.dumps(list(section.listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(section.connect)))
+    tls = _tls(section)
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(tls))
+        if not section.insecure:
+            # a secured node opens and accepts only the link kinds it was configured with, so a locator learnt by
+            # scouting (a stranger's plain tcp/ listener) is never dialled
+            protocols = sorted({endpoint_protocol(e) for e in (*section.listen, *section.connect)})
+            if protocols:
+                conf.insert_json5("transport/link/protocols", json.dumps(protocols))
+    auth = section.auth
+    usrpwd: dict[str, str] = {}
+    if auth.user is not None and auth.password is not None:
+        usrpwd.update(user=auth.user, password=auth.password.get_secret_value())
+    if auth.dictionary_file is not None:
+        usrpwd["dictionary_file"] = str(auth.dictionary_file)
+    if usrpwd:
+        conf.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
+    if section.access_control.enabled:
+        conf.insert_json5("access_control", json.dumps(access_control_config(section.prefix, section.access_control)))
+    return conf
+
+
+def open_session(section: ZenohSettings | None = None, /, **fields: Any) -> zenoh.Session:
+    """Open a session (use as a context manager).
+
+    ``open_session(settings.zenoh)`` for the daemon; ``open_session(connect=[ep])``
+    (fields of the ``[zenoh]`` section) for tools and tests. Raises
+    :class:`SettingsError` for a section that is refused, :class:`BusError`
+    when zenoh cannot open it.
+    """
+    s = bus_section(section, **fields)
+    try:
+        return zenoh.open(zenoh_config(s))
+    except zenoh.ZError as exc:
+        where = ", ".join([*(f"listen {e}" for e in s.listen), *(f"connect {e}" for e in s.connect)]) or "no endpoints"
+        raise BusError(f"the zenoh session could not open ({where}): {str(exc).split(' at ')[0]}") from None

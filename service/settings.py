@@ -11,16 +11,50 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from drillnav.registration.errors import DrillnavError
 
-__all__ = ["Settings", "SettingsError", "load_settings"]
+from .bus_policy import check_zenoh
+
+__all__ = ["Settings", "SettingsError", "load_settings", "describe_validation_error", "ZenohSettings"]
 
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+class ZenohTlsSettings(_Section):
+    ca: Path | None = Field(None, description="the site CA certificate (ca.pem from 'drillnav pki init'): verifies the peer's certificate")
+    certificate: Path | None = Field(None, description="this node's certificate (PEM, from 'drillnav pki issue'); its common name is the name access control knows it by")
+    private_key: Path | None = Field(None, description="this node's private key (PEM, mode 0600)")
+    mutual: bool = Field(True, description="mutual TLS: a listener accepts only peers with a certificate from the CA")
+
+
+class ZenohAuthSettings(_Section):
+    user: str | None = Field(None, min_length=1, description="the name this node gives when it connects (zenoh usrpwd)")
+    password: SecretStr | None = Field(None, description="its password (better from DRILLNAV_ZENOH__AUTH__PASSWORD than in a file)")
+    dictionary_file: Path | None = Field(None, description="user:password lines a listener accepts (mode 0600)")
+
+
+class ZenohAccessSettings(_Section):
+    """Who may do what on the bus; each name matches a certificate's common name or a zenoh username."""
+
+    enabled: bool = False
+    daemon: list[str] = Field(default_factory=lambda: ["drillnav-daemon"], description="may publish everything, the outputs (axis, overlay, registration, fluoro/markers) included")
+    cameras: list[str] = Field(default_factory=list, description="may publish <prefix>/camera/**")
+    carms: list[str] = Field(default_factory=list, description="may publish <prefix>/fluoro/shot and <prefix>/fluoro/*/image")
+    readers: list[str] | None = Field(None, description="may subscribe; none: any peer that passed TLS or authentication")
+    interfaces: list[str] = Field(default_factory=list, description="when set, a name is trusted only on these network interfaces")
+
+    @field_validator("daemon", "cameras", "carms", "readers", "interfaces")
+    @classmethod
+    def _names(cls, names: list[str] | None) -> list[str] | None:
+        for n in names or ():
+            if not n or n != n.strip() or len(n) > 64:
+                raise ValueError(f"'{n}' is not a usable name (1-64 characters, no surrounding blanks)")
+        return names
 
 
 class ZenohSettings(_Section):
@@ -29,6 +63,19 @@ class ZenohSettings(_Section):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     prefix: str = "drillnav"
+    insecure: bool = Field(False, description="accept a bus reachable beyond loopback without TLS, authentication and access control")
+    tls: ZenohTlsSettings = Field(default_factory=ZenohTlsSettings)
+    auth: ZenohAuthSettings = Field(default_factory=ZenohAuthSettings)
+    access_control: ZenohAccessSettings = Field(default_factory=ZenohAccessSettings)
+
+    @model_validator(mode="after")
+    def _secure_enough(self) -> "ZenohSettings":
+        self.check()
+        return self
+
+    def check(self) -> None:
+        """Refuse (ValueError naming the key) what cannot work or would expose the bus; see docs/security.md."""
+        check_zenoh(self)
 
 
 class ApiSettings(_Section):
@@ -113,6 +160,12 @@ def load_settings(config: Path | None = None, **overrides) -> Settings:
     try:
         return Settings(**data)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise SettingsError(f"invalid setting '{where}': {first['msg']} ({len(exc.errors())} problem(s) in all)") from None
+        raise SettingsError(describe_validation_error(exc)) from None
+
+
+def describe_validation_error(exc: ValidationError, *, prefix: str = "") -> str:
+    """One line naming the first refused setting (``zenoh.tls.ca``) and why."""
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in (prefix, *first["loc"]) if p != "")
+    why = first["msg"].removeprefix("Value error, ")
+    return f"invalid setting '{where}': {why} ({len(exc.errors())} problem(s) in all)"
