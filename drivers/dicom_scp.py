@@ -52,6 +52,8 @@ from pynetdicom.sop_class import (  # type: ignore[attr-defined]
 
 from drillnav.registration.errors import DrillnavError
 
+from .private_files import make_private_dir, open_private
+
 __all__ = [
     "StoreScp",
     "ACCEPTED_SOP_CLASSES",
@@ -63,7 +65,6 @@ __all__ = [
     "is_loopback",
     "server_tls_context",
     "client_tls_context",
-    "make_private_dir",
 ]
 
 log = logging.getLogger(__name__)
@@ -104,14 +105,6 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:  # a host name other than localhost may resolve to anything
         return False
-
-
-def make_private_dir(folder: str | Path) -> Path:
-    """Create ``folder`` (and parents) and make it 0700: incoming images carry patient names."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-    os.chmod(folder, 0o700)  # mkdir's mode is masked by the umask, and an existing folder keeps its own
-    return folder
 
 
 def server_tls_context(*, cert: str | Path, key: str | Path, ca: str | Path | None = None) -> ssl.SSLContext:
@@ -181,8 +174,7 @@ class StoreScp:
             tmp = self._root / f".{name}.part"
             if final.parent != self._root or tmp.parent != self._root:  # cannot happen with a hex name; checked all the same
                 raise ValueError("stored path left the incoming folder")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o600)
-            with os.fdopen(fd, "wb") as f:
+            with open_private(tmp, "wb") as f:
                 ds.save_as(f, enforce_file_format=True)
                 f.flush()
                 os.fsync(f.fileno())
