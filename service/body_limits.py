@@ -71,8 +71,8 @@ def check_image_pixels(name: str, data: bytes, *, max_pixels: float) -> tuple[in
             width, height = im.size
     except (UnidentifiedImageError, OSError, ValueError) as exc:
         raise ValueError(f"upload '{name}': not a readable image (corrupt or unsupported format: {type(exc).__name__} on its header)") from None
-    except Image.DecompressionBombError:  # Pillow's own guard on open, for the very largest declarations
-        raise ImageTooLarge(f"upload '{name}': declares more than {max_pixels / 1e6:g} Mpixel (decompression bomb)") from None
+    except Image.DecompressionBombError as exc:  # Pillow's own guard on open, for the very largest declarations
+        raise ImageTooLarge(f"upload '{name}': above the limit of {max_pixels / 1e6:g} Mpixel (api.max_image_mpixel): {exc}") from None
     if width * height > max_pixels:
         raise ImageTooLarge(f"upload '{name}': {width}x{height} px is {width * height / 1e6:.0f} Mpixel, above the limit of {max_pixels / 1e6:g} Mpixel (api.max_image_mpixel)")
     return width, height
