@@ -152,3 +152,14 @@ def test_compressed_syntaxes_negotiated_stored_and_decoded(tmp_path):
             assert np.array_equal(stored.pixel_array, want), name
             (fluoro,) = read_fluoro(scp.stored[-1])
             np.testing.assert_allclose(fluoro.pixels_log, want * float(stored.RescaleSlope), rtol=0, atol=1e-6)
+
+
+def test_settings_refuse_an_open_listener_and_half_tls():
+    from drillnav.service.settings import SettingsError, load_settings
+
+    with pytest.raises(SettingsError, match=r"dicom\.allowed_calling_aes is required when dicom\.scp_host \(0\.0\.0\.0\)"):
+        load_settings(dicom={"scp_host": "0.0.0.0"})
+    assert load_settings(dicom={"scp_host": "0.0.0.0", "allowed_calling_aes": ["CARM1"]}).dicom.allowed_calling_aes == ["CARM1"]
+    assert load_settings(dicom={"scp_host": "::1"}).dicom.allowed_calling_aes is None  # loopback: the allow list may stay open
+    with pytest.raises(SettingsError, match=r"dicom\.tls_cert and dicom\.tls_key go together"):
+        load_settings(dicom={"tls_cert": "/etc/drillnav/scp.pem"})
