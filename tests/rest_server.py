@@ -58,6 +58,21 @@ class SmallState:
         return f"{view}.dcm"
 
 
+BYTES_READ = [0]
+
+
+def counting_protocol():
+    """uvicorn's own HTTP protocol, counting every byte it takes off the sockets (what the server read)."""
+    from uvicorn.protocols.http.auto import AutoHTTPProtocol
+
+    class Counting(AutoHTTPProtocol):  # type: ignore[misc, valid-type]
+        def data_received(self, data: bytes) -> None:
+            BYTES_READ[0] += len(data)
+            super().data_received(data)
+
+    return Counting
+
+
 def grab_frame() -> tuple[int, np.ndarray]:
     time.sleep(0.1)
     return time.time_ns(), np.zeros((48, 64), np.uint8)
@@ -75,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
     with CalibrationJobs(work_dir=args.work / "cal", grab_frame=grab_frame, max_active=api.max_jobs_running,
                          max_stored=api.max_jobs_stored, expiry_s=api.job_expiry_s) as jobs, AuditLog(folder=api.audit_folder) as audit:
         app = create_app(state=SmallState(api.token, jobs), settings=api, audit=audit)
-        uvicorn.run(app, host="127.0.0.1", port=args.port, log_level="warning", **uvicorn_ssl_kwargs(api))
+        app.get("/test/bytes-read")(lambda: {"bytes": BYTES_READ[0]})  # test instrumentation: bytes uvicorn read so far
+        uvicorn.run(app, host="127.0.0.1", port=args.port, log_level="warning", http=counting_protocol(), **uvicorn_ssl_kwargs(api))
 
 
 if __name__ == "__main__":
