@@ -60,7 +60,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
         ep = "tcp/127.0.0.1:17490"
-        (d / "c.toml").write_text(f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18090\ntoken = "bench-token"\n[dicom]\nwatch_folder = "{d / "in"}"\n[recording]\nfolder = "{d / "rec"}"\n' + ("[twin_scene]\nct_voxel_mm = 2.0\n" if args.ct else ""))
+        (d / "c.toml").write_text(f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = 18090\ntoken = "bench-token-of-16-chars"\n[dicom]\nwatch_folder = "{d / "in"}"\n[recording]\nfolder = "{d / "rec"}"\n' + ("[twin_scene]\nct_voxel_mm = 2.0\n" if args.ct else ""))
         proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(d / "c.toml")], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
         lat, rss = [], []
         try:
@@ -78,7 +78,7 @@ def main() -> None:
                     rss.append(rss_mb(proc.pid))
                     if args.shot_every and time.monotonic() - t_start >= next_shot:
                         # As a new fluoroscopy view arrives while drilling: re-registration while frames stream.
-                        r = httpx.post("http://127.0.0.1:18090/carm/shots", json={"view": views[shots % 2]}, headers={"Authorization": "Bearer bench-token"}, timeout=30)
+                        r = httpx.post("http://127.0.0.1:18090/carm/shots", json={"view": views[shots % 2]}, headers={"Authorization": "Bearer bench-token-of-16-chars"}, timeout=30)
                         r.raise_for_status()
                         shots, next_shot = shots + 1, next_shot + args.shot_every
                 cpu1, t_end = cpu_s(proc.pid), time.monotonic()

@@ -50,6 +50,7 @@ __all__ = [
     "JobAlreadyFinished",
     "NoActiveCamera",
     "InstallFailed",
+    "TooManyJobs",
 ]
 
 log = logging.getLogger(__name__)
@@ -95,6 +96,10 @@ class NoActiveCamera(CalibrationJobError):
 
 class InstallFailed(CalibrationJobError):
     """The result could not be written to the active path, or the install callback failed."""
+
+
+class TooManyJobs(CalibrationJobError):
+    """The cap on jobs queued or running (or kept) is reached; the message names the cap."""
 
 
 class JobKind(str, enum.Enum):
@@ -201,6 +206,13 @@ class CalibrationJobs:
         ``() -> (stamp_ns, image)`` of the live drill camera; None: live capture is refused.
     on_install : callable or None
         ``(kind, path)`` called after a result was installed, e.g. to reload it.
+    max_active : int
+        Jobs queued or running at once; one more is refused with :class:`TooManyJobs` (api.max_jobs_running).
+    max_stored : int
+        Jobs kept in all; at the cap the oldest finished job is forgotten, and with none finished the
+        submission is refused (api.max_jobs_stored).
+    expiry_s : float
+        A finished job (and its result folder) is forgotten this long after it ended (api.job_expiry_s).
     """
 
     def __init__(
@@ -212,9 +224,15 @@ class CalibrationJobs:
         active_drill_path: Path | None = None,
         grab_frame: GrabFrame | None = None,
         on_install: Callable[[str, Path], None] | None = None,
+        max_active: int = 4,
+        max_stored: int = 50,
+        expiry_s: float = 3600.0,
     ) -> None:
         if max_workers < 1:
             raise ValueError(f"max_workers must be >= 1, got {max_workers}")
+        if max_active < 1 or max_stored < max_active or expiry_s <= 0:
+            raise ValueError(f"need max_active >= 1, max_stored >= max_active and expiry_s > 0, got {max_active}, {max_stored}, {expiry_s}")
+        self.max_active, self.max_stored, self.expiry_s = max_active, max_stored, expiry_s
         self.work_dir = Path(work_dir)
         self.active_paths: dict[JobKind, Path | None] = {
             JobKind.CAMERA: Path(active_camera_path) if active_camera_path else None,
@@ -259,7 +277,9 @@ class CalibrationJobs:
         live_fps: float | None = None,
         label: str | None = None,
     ) -> JobInfo:
-        """Validate a request and queue the job; :class:`InvalidJobRequest` / :class:`NoActiveCamera` say why not."""
+        """Validate a request and queue the job; :class:`InvalidJobRequest` / :class:`NoActiveCamera` / :class:`TooManyJobs` say why not."""
+        with self._lock:
+            self._make_room()  # refused before any upload is decoded
         try:
             job_kind = JobKind(kind)
         except ValueError:
@@ -290,10 +310,37 @@ class CalibrationJobs:
             board=spec, camera=camera, images=images, live=live, created_ns=time.time_ns(), n_inputs=len(images),
         )
         with self._lock:
+            self._make_room()  # again: another submission may have come in while this one decoded
             self._jobs[job.id] = job
             info = job.info()
         self._pool.submit(self._run, job)
         return info
+
+    def _expire(self) -> None:
+        """Forget finished jobs older than ``expiry_s`` (with their result folders); under ``_lock``."""
+        now = time.time_ns()
+        for job_id in [i for i, j in self._jobs.items() if j.state.finished and j.finished_ns is not None and now - j.finished_ns > self.expiry_s * 1e9]:
+            self._forget(job_id)
+
+    def _forget(self, job_id: str) -> None:
+        self._jobs.pop(job_id, None)
+        folder = self.result_path(job_id).parent
+        for f in folder.glob("*") if folder.is_dir() else ():
+            f.unlink(missing_ok=True)
+        if folder.is_dir():
+            folder.rmdir()
+
+    def _make_room(self) -> None:
+        """Expire, apply the caps, and free a stored slot for one more job; under ``_lock``."""
+        self._expire()
+        active = sum(1 for j in self._jobs.values() if not j.state.finished)
+        if active >= self.max_active:
+            raise TooManyJobs(f"{active} calibration jobs are queued or running, the cap (api.max_jobs_running) is {self.max_active}: wait or cancel one")
+        if len(self._jobs) >= self.max_stored:
+            finished = sorted((j for j in self._jobs.values() if j.state.finished), key=lambda j: j.finished_ns or 0)
+            if not finished:
+                raise TooManyJobs(f"{len(self._jobs)} calibration jobs are kept, the cap (api.max_jobs_stored) is {self.max_stored}")
+            self._forget(finished[0].id)
 
     def _active_camera(self) -> PinholeCamera:
         path = self.active_paths[JobKind.CAMERA]
@@ -334,11 +381,13 @@ class CalibrationJobs:
 
     def get(self, job_id: str) -> JobInfo:
         with self._lock:
+            self._expire()
             return self._job(job_id).info()
 
     def list_jobs(self) -> list[JobInfo]:
         """Every job, oldest first."""
         with self._lock:
+            self._expire()
             return [j.info() for j in sorted(self._jobs.values(), key=lambda j: j.created_ns)]
 
     def result_path(self, job_id: str) -> Path:

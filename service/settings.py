@@ -81,7 +81,29 @@ class ZenohSettings(_Section):
 class ApiSettings(_Section):
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=1, le=65535)
-    token: str = Field("change-me", min_length=8, description="bearer token for every changing endpoint")
+    # No default: real devices refuse to start without one, the twin makes a random one (service/auth.py resolve_token).
+    token: str | None = Field(None, min_length=16, description="bearer token for every changing endpoint (at least 16 characters)")
+    tls_cert: Path | None = Field(None, description="PEM certificate (chain) for HTTPS; with tls_key")
+    tls_key: Path | None = Field(None, description="PEM private key of tls_cert")
+    tls_client_ca: Path | None = Field(None, description="CA whose client certificates are required (mutual TLS); needs tls_cert")
+    auth_failures_burst: int = Field(10, ge=1, description="failed authentications from one client within auth_failures_window_s before 429")
+    auth_failures_window_s: float = Field(10.0, gt=0)
+    max_upload_mb: float = Field(64.0, gt=0, description="largest calibration upload request body")
+    max_json_kb: float = Field(64.0, gt=0, description="largest body of any other request")
+    max_image_mpixel: float = Field(40.0, gt=0, description="largest uploaded image, checked from its header before decoding")
+    max_jobs_running: int = Field(2, ge=1, description="calibration jobs queued or running at once")
+    max_jobs_stored: int = Field(50, ge=1, description="calibration jobs kept (finished ones expire sooner)")
+    job_expiry_s: float = Field(3600.0, gt=0, description="a finished calibration job is forgotten this long after it ended")
+    max_recordings: int = Field(2, ge=1, description="recordings running at once")
+    audit_folder: Path = Field(Path("var/audit"), description="audit.jsonl: who changed what (0600 file in a 0700 folder)")
+
+    @model_validator(mode="after")
+    def _tls_pairs(self) -> "ApiSettings":
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("api.tls_cert and api.tls_key go together: give both or neither")
+        if self.tls_client_ca is not None and self.tls_cert is None:
+            raise ValueError("api.tls_client_ca (mutual TLS) needs api.tls_cert and api.tls_key")
+        return self
 
 
 class CameraSettings(_Section):
@@ -102,7 +124,25 @@ class DicomSettings(_Section):
     scp_host: str = "127.0.0.1"
     scp_port: int = Field(11112, ge=1, le=65535)
     ae_title: str = Field("DRILLNAV", min_length=1, max_length=16)
-    allowed_calling_aes: list[str] | None = None  # None: any calling AE
+    allowed_calling_aes: list[str] | None = None  # None: any calling AE (refused unless the SCP listens on loopback only)
+    tls_cert: Path | None = Field(None, description="PEM certificate of the SCP: DICOM over TLS; with tls_key")
+    tls_key: Path | None = None
+    tls_ca: Path | None = Field(None, description="CA whose client certificates senders must present (mutual TLS)")
+    retention_max_age_h: float = Field(24.0, gt=0, description="incoming images older than this are deleted (oldest first)")
+    retention_max_mb: float = Field(2048.0, gt=0, description="incoming images beyond this total are deleted, oldest first")
+    retention_every_s: float = Field(300.0, gt=0, description="how often the daemon applies the retention")
+
+    @model_validator(mode="after")
+    def _safe_listener(self) -> "DicomSettings":
+        from drillnav.drivers.dicom_scp import is_loopback
+
+        if self.scp_enabled and self.allowed_calling_aes is None and not is_loopback(self.scp_host):
+            raise ValueError(f"dicom.allowed_calling_aes is required when dicom.scp_host ({self.scp_host}) is beyond loopback: name the C-arms' AE titles")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("dicom.tls_cert and dicom.tls_key go together: give both or neither")
+        if self.tls_ca is not None and self.tls_cert is None:
+            raise ValueError("dicom.tls_ca (mutual TLS) needs dicom.tls_cert and dicom.tls_key")
+        return self
 
 
 class RecordingSettings(_Section):

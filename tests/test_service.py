@@ -289,7 +289,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     base = f"http://127.0.0.1:{api_port}"
     cfg = tmp_path / "drillnav.toml"
     cfg.write_text(
-        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "test-token-1"\n'
+        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "test-token-1-of-16-chars"\n'
         f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = {scp_port}\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\n'
         f'[calibration]\nfolder = "{tmp_path / "cal"}"\n'
     )
@@ -333,7 +333,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
             time.sleep(0.1)
         assert httpx.get(f"{base}/status", timeout=5).json()["registration_id"] > before
         # A live calibration job captures the daemon's own camera frames; the twin's field holds no board, so it fails and says why.
-        auth = {"Authorization": "Bearer test-token-1"}
+        auth = {"Authorization": "Bearer test-token-1-of-16-chars"}
         r = httpx.post(f"{base}/calibration/jobs", data={"kind": "camera", "board": "checkerboard:9x6:25mm", "live_seconds": "1", "live_fps": "5"}, headers=auth, timeout=10)
         assert r.status_code == 202, r.text
         job_url = f"{base}/calibration/jobs/{r.json()['id']}"
