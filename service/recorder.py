@@ -305,7 +305,14 @@ class Recorder:
     # -- the writer thread ------------------------------------------------------------------
     def _write_loop(self) -> None:
         while True:
-            item = self._queue.get()
+            try:
+                # Paused, the writer wakes on its own to look for space: it resumes (and writes the carried
+                # state into the new file) even when nothing is published.
+                item = self._queue.get(timeout=self.resume_check_ns / 1e9 if self.paused else None)
+            except queue.Empty:
+                if time.monotonic_ns() >= self._retry_at_ns:
+                    self._try_resume()
+                continue
             if item is None:
                 return
             try:
