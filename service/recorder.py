@@ -45,7 +45,7 @@ from drillnav.schemas.topics import TOPICS, Encoding, key, topic_for_key
 
 from .settings import RecordingSettings
 
-__all__ = ["Recorder", "RecorderStatus", "apply_retention", "FILE_METADATA"]
+__all__ = ["CarriedState", "Recorder", "RecorderStatus", "apply_retention", "FILE_METADATA"]
 
 _PROTO = {"foxglove.CompressedImage": CompressedImage}
 _JSON_SCHEMAS = {**msg.JSON_SCHEMAS, "drillnav.Calibration": CALIBRATION_SCHEMA}
@@ -56,6 +56,8 @@ _MAGIC = b"\x89MCAP0\r\n"
 _STATE_TOPICS = ("calibration", "fluoro_shot", "fluoro_image", "fluoro_markers", "status")
 
 OnEvent = Callable[[str, str], None]
+# Failed writes that mean "no room": the recording pauses and resumes when there is room again.
+_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,6 +77,45 @@ class RecorderStatus:
 
 def _no_event(level: str, message: str) -> None:
     pass
+
+
+class CarriedState:
+    """The latest of each state message under ``prefix``: what a new file must start with to replay alone.
+
+    Each recorder keeps one from what it records. A daemon that starts recordings mid-case shares one that it
+    keeps from start-up (``subscribe``), so a recording's first file carries the shots taken before it began.
+    """
+
+    def __init__(self, *, prefix: str) -> None:
+        self.prefix = prefix
+        self._rank = {name: i for i, name in enumerate(_STATE_TOPICS)}
+        self._lock = threading.Lock()
+        self._latest: dict[tuple[int, str], tuple[str, int, bytes]] = {}  # (rank, view or key) -> (key, log_time_ns, data)
+
+    def keep(self, key_expr: str, log_time_ns: int, data: bytes) -> None:
+        topic = topic_for_key(self.prefix, key_expr)
+        name = next((n for n in _STATE_TOPICS if TOPICS[n] is topic), None)
+        if name is None:
+            return
+        which = key_expr
+        if name == "fluoro_shot":  # one key for every view: the view is in the message
+            try:
+                which = str(msg.decode_json(data)["view"])
+            except (ValueError, KeyError):
+                return  # a malformed shot is recorded but carried into no file
+        with self._lock:
+            self._latest[(self._rank[name], which)] = (key_expr, log_time_ns, data)
+
+    def messages(self) -> list[tuple[str, int, bytes]]:
+        """(key, first log_time_ns, payload), calibrations first, then shots, images, markers, status, each oldest first."""
+        with self._lock:
+            items = sorted(self._latest.items(), key=lambda kv: (kv[0][0], kv[1][1]))
+        return [v for _, v in items]
+
+    def subscribe(self, session: zenoh.Session) -> list:
+        """Keep it from ``session`` (state keys only); returns the subscribers, to undeclare when done."""
+        keys = [key(self.prefix, n, "*") if "*" in TOPICS[n].suffix else key(self.prefix, n) for n in _STATE_TOPICS]
+        return [session.declare_subscriber(k, lambda sample: self.keep(str(sample.key_expr), time.time_ns(), sample.payload.to_bytes())) for k in keys]
 
 
 class _McapFile:
@@ -220,14 +261,15 @@ class Recorder:
     Records from construction until :meth:`close` (like an open file; also a context manager).
     ``camera_fps`` / ``camera_jpeg_quality`` None (the defaults here) keep every frame as received; the budget
     is a policy of the settings ([recording], see :meth:`from_settings`). ``on_event(level, message)``
-    hears pauses, resumes, drops and retention removals.
+    hears pauses, resumes, drops and retention removals. ``carried_state``: a :class:`CarriedState` kept from
+    before this recording began (the daemon's), else the recorder keeps its own from what it records.
     """
 
     def __init__(self, *, session: zenoh.Session, prefix: str, folder: Path, name: str, chunk_size: int = 256 * 1024,
                  rotate_bytes: int = 512 * 1024 * 1024, rotate_seconds: float = 3600.0, camera_fps: float | None = None,
                  camera_jpeg_quality: int | None = None, queue_size: int = 256, max_age_s: float | None = None,
                  max_total_bytes: int | None = None, resume_free_bytes: int = 64 * 1024 * 1024, resume_check_s: float = 2.0,
-                 on_event: OnEvent = _no_event) -> None:
+                 on_event: OnEvent = _no_event, carried_state: CarriedState | None = None) -> None:
         if not name.replace("-", "").replace("_", "").isalnum():
             raise ValueError(f"recording name '{name}' may hold only letters, digits, '-' and '_'")
         if rotate_bytes <= 0 or rotate_seconds <= 0:
@@ -246,7 +288,6 @@ class Recorder:
         self.resume_free_bytes, self.resume_check_ns = resume_free_bytes, int(resume_check_s * 1e9)
         self._on_event = on_event
         self._camera_key = key(prefix, "camera_image")
-        self._state_rank = {name_: i for i, name_ in enumerate(_STATE_TOPICS)}
         self.folder.mkdir(parents=True, exist_ok=True, mode=0o700)
         os.chmod(self.folder, 0o700)  # also an existing folder: recordings hold patient images
         self.files: list[Path] = []
@@ -257,26 +298,29 @@ class Recorder:
         self._file_started_ns = 0
         self.pause_reason: str | None = None
         self._retry_at_ns = self._paused_since_ns = 0
-        self._state: dict[tuple[int, str], tuple[str, int, bytes]] = {}  # (rank, view or key) -> (key, log_time_ns, data)
+        self._pause_errno: int | None = None
+        self.carried = carried_state if carried_state is not None else CarriedState(prefix=prefix)
         self._next_frame_ns = 0
         self._last_drop_event_ns = 0
         self._closed = False
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self._open_file()
-        if self._file is None:
-            raise OSError(f"recording '{name}': cannot write into {self.folder}: {self.pause_reason}")
+        if self._file is None and self._pause_errno not in _SPACE_ERRNOS:
+            # A full disk at start is a pause like any other; a folder we may not write is a configuration error.
+            raise OSError(self._pause_errno, f"recording '{name}': cannot write into {self.folder}: {self.pause_reason}")
         self._thread = threading.Thread(target=self._write_loop, name=f"recorder-{name}", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(f"{prefix}/**", self._on_sample)
 
     @classmethod
-    def from_settings(cls, settings: RecordingSettings, *, session: zenoh.Session, prefix: str, name: str, on_event: OnEvent = _no_event) -> "Recorder":
+    def from_settings(cls, settings: RecordingSettings, *, session: zenoh.Session, prefix: str, name: str, on_event: OnEvent = _no_event,
+                      carried_state: CarriedState | None = None) -> "Recorder":
         s = settings
         return cls(session=session, prefix=prefix, folder=s.folder, name=name, rotate_bytes=s.rotate_mb * 1024 * 1024,
                    rotate_seconds=s.rotate_minutes * 60.0, camera_fps=s.camera_fps or None, camera_jpeg_quality=s.camera_jpeg_quality or None,
                    queue_size=s.queue_size, max_age_s=s.max_age_days * 86400.0 if s.max_age_days else None,
                    max_total_bytes=int(s.max_total_gb * 1e9) if s.max_total_gb else None,
-                   resume_free_bytes=int(s.resume_free_mb * 1024 * 1024), on_event=on_event)
+                   resume_free_bytes=int(s.resume_free_mb * 1024 * 1024), on_event=on_event, carried_state=carried_state)
 
     def __enter__(self) -> "Recorder":
         return self
@@ -325,7 +369,7 @@ class Recorder:
         if key_expr == self._camera_key and self.camera_jpeg_quality is not None:
             image, stamp_ns, frame_id = msg.decode_compressed_image(data)
             data = msg.compressed_image(image, stamp_ns=stamp_ns, frame_id=frame_id, fmt="jpeg", quality=self.camera_jpeg_quality)
-        self._keep_state(key_expr, log_time_ns, data)
+        self.carried.keep(key_expr, log_time_ns, data)
         if self._file is None:
             if time.monotonic_ns() < self._retry_at_ns or not self._try_resume():
                 self.lost_while_paused += 1
@@ -342,19 +386,6 @@ class Recorder:
         if self._file_bytes >= self.rotate_bytes or time.monotonic_ns() - self._file_started_ns >= self.rotate_ns:
             self._rotate()
 
-    def _keep_state(self, key_expr: str, log_time_ns: int, data: bytes) -> None:
-        topic = topic_for_key(self.prefix, key_expr)
-        name = next((n for n in _STATE_TOPICS if TOPICS[n] is topic), None)
-        if name is None:
-            return
-        which = key_expr
-        if name == "fluoro_shot":  # one key for every view: the view is in the message
-            try:
-                which = str(msg.decode_json(data)["view"])
-            except (ValueError, KeyError):
-                return  # a malformed shot is recorded but carried into no file
-        self._state[(self._state_rank[name], which)] = (key_expr, log_time_ns, data)
-
     # -- files ------------------------------------------------------------------------------
     def _open_file(self) -> None:
         """Open the next file and write the carried state into it; on failure stay paused."""
@@ -365,11 +396,11 @@ class Recorder:
         f = None
         try:
             f = _McapFile(path, chunk_size=self.chunk_size)
-            state = sorted(self._state.items(), key=lambda kv: (kv[0][0], kv[1][1]))
+            state = self.carried.messages()
             f.start({"recording": self.name, "index": str(self._index - 1), "state_messages": str(len(state)),
                      "started_utc": stamp, "previous_file": self.files[-1].name if self.files else ""})
             opened_ns = time.time_ns()
-            for _, (key_expr, log_time_ns, data) in state:
+            for key_expr, log_time_ns, data in state:
                 # log_time: when it entered this file (replay timing); publish_time: when it was first recorded.
                 f.add(self.prefix, key_expr, log_time_ns=opened_ns, publish_time_ns=log_time_ns, data=data)
         except OSError as exc:
@@ -397,6 +428,7 @@ class Recorder:
             if not f.abort() and f.path in self.files:
                 self.files.remove(f.path)
         was_paused = self.pause_reason is not None
+        self._pause_errno = exc.errno
         self.pause_reason = f"{exc.strerror or exc} ({opening or (f.path if f else self.folder)})"
         self._retry_at_ns = time.monotonic_ns() + self.resume_check_ns
         if not was_paused:

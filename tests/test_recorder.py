@@ -17,7 +17,7 @@ from drillnav.schemas import messages as msg
 from drillnav.schemas.calibration_message import calibration_message_from_models, decode_calibration_message
 from drillnav.schemas.topics import key
 from drillnav.service.bus import open_session
-from drillnav.service.recorder import Recorder, apply_retention
+from drillnav.service.recorder import CarriedState, Recorder, apply_retention
 from drillnav.service.replay import RecordingReader
 from drillnav.service.settings import load_settings
 
@@ -180,8 +180,18 @@ def test_full_disk_pauses_with_an_event_keeps_every_file_readable_and_resumes_in
             assert n_first > 10
             send(10)  # while paused: lost and counted, nothing raised
             _wait(lambda: rec.status().lost_while_paused >= 10)
-            ballast.unlink()  # space returns: the recorder finds it on its own
-            _wait(lambda: not rec.paused and len(rec.files) == 2)
+            with open(disk / "ballast2", "wb", buffering=0) as f:  # the cut freed a little: fill it to the last byte
+                try:
+                    while True:
+                        f.write(b"\0" * 4096)
+                except OSError:
+                    pass
+            late = Recorder(session=b, prefix=P, folder=folder, name="late", resume_free_bytes=1 << 20, resume_check_s=0.2)
+            assert late.paused and late.files == []  # started on a full disk: paused, not refused
+            ballast.unlink()  # space returns: the recorders find it on their own
+            (disk / "ballast2").unlink()
+            _wait(lambda: not rec.paused and len(rec.files) == 2 and len(late.files) == 1)
+            late.close()
             resumed_at = rec.messages
             send(20)
             _wait(lambda: rec.messages >= resumed_at + 40)
@@ -201,3 +211,24 @@ def test_full_disk_pauses_with_an_event_keeps_every_file_readable_and_resumes_in
 def disk_free(path: Path) -> int:
     st = os.statvfs(path)
     return st.f_bavail * st.f_frsize
+
+
+def test_a_recording_started_mid_case_carries_what_came_before_it(tmp_path):
+    scene = make_scene(seed=3, render=False)
+    cal = calibration_message_from_models(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, stamp_ns=1, source="twin")
+    ep = free_endpoint()
+    with open_session(listen=[ep]) as a, open_session(connect=[ep]) as b:
+        carried = CarriedState(prefix=P)  # the daemon's, kept from start-up
+        subs = carried.subscribe(b)
+        time.sleep(0.5)
+        a.put(key(P, "calibration"), cal)
+        a.put(key(P, "fluoro_shot"), msg.fluoro_shot(np.full((8, 8), 0.5, np.float32), scene.views["inlet"], stamp_ns=2, view_name="inlet"))
+        a.put(key(P, "fluoro_image", "inlet"), msg.compressed_image(np.zeros((8, 8), np.uint8), stamp_ns=2, frame_id="carm/inlet", fmt="png"))
+        a.put(key(P, "axis_carm"), msg.encode_json({"stamp_ns": 3}))  # not state
+        _wait(lambda: len(carried.messages()) == 3)
+        rec = Recorder(session=b, prefix=P, folder=tmp_path, name="late", carried_state=carried)
+        (path,) = rec.close()
+        for s in subs:
+            s.undeclare()
+    got = [(m.topic, m.carried_state) for m in RecordingReader(path)]
+    assert got == [(key(P, "calibration"), True), (key(P, "fluoro_shot"), True), (key(P, "fluoro_image", "inlet"), True)]
