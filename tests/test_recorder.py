@@ -232,3 +232,77 @@ def test_a_recording_started_mid_case_carries_what_came_before_it(tmp_path):
             s.undeclare()
     got = [(m.topic, m.carried_state) for m in RecordingReader(path)]
     assert got == [(key(P, "calibration"), True), (key(P, "fluoro_shot"), True), (key(P, "fluoro_image", "inlet"), True)]
+
+
+FSIZE_CHILD = r"""
+import json, resource, sys, threading, time
+from drillnav.service.bus import open_session
+from drillnav.service.recorder import Recorder
+ep, folder, limit = sys.argv[1], sys.argv[2], int(sys.argv[3])
+hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))  # a write past `limit` bytes fails with EFBIG (Python ignores SIGXFSZ)
+events = []
+with open_session(connect=[ep]) as s:
+    rec = Recorder(session=s, prefix="drillnav", folder=folder, name="quota", chunk_size=32 * 1024, resume_free_bytes=1, resume_check_s=0.2,
+                   on_event=lambda lvl, m: events.append([lvl, m]))
+    stop = threading.Event()
+    def commands():
+        for line in sys.stdin:
+            if line.strip() == "room":
+                resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
+            elif line.strip() == "close":
+                rec.close()
+                stop.set()
+                return
+    threading.Thread(target=commands, daemon=True).start()
+    while True:
+        st = rec.status()
+        print(json.dumps({"paused": st.paused, "files": list(st.files), "messages": st.messages, "lost": st.lost_while_paused, "events": events}), flush=True)
+        if stop.is_set():
+            break
+        time.sleep(0.05)
+"""
+
+
+def test_a_file_size_limit_pauses_and_resumes_without_root(tmp_path):
+    """The same failed-write path as a full disk, where no tmpfs can be mounted: RLIMIT_FSIZE in a child process."""
+    import json
+    import sys
+
+    ep = free_endpoint()
+    rng = np.random.default_rng(1)
+    with open_session(listen=[ep]) as a:
+        child = subprocess.Popen([sys.executable, "-c", FSIZE_CHILD, ep, str(tmp_path), str(400_000)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            state = json.loads(child.stdout.readline())
+            time.sleep(0.5)
+
+            def until(cond):
+                nonlocal state
+                deadline = time.monotonic() + 15
+                while not cond(state):
+                    assert time.monotonic() < deadline, state
+                    state = json.loads(child.stdout.readline())
+
+            for i in range(30):  # 900 kB of incompressible payload against a 400 kB limit
+                a.put(key(P, "twin_truth"), rng.bytes(30_000))
+                time.sleep(0.005)
+            until(lambda s: s["paused"])
+            assert "File too large" in state["events"][0][1]
+            child.stdin.write("room\n")
+            child.stdin.flush()
+            until(lambda s: not s["paused"] and len(s["files"]) == 2)
+            resumed_at = state["messages"]
+            for i in range(10):
+                a.put(key(P, "axis_carm"), msg.encode_json({"stamp_ns": i}))
+                time.sleep(0.005)
+            until(lambda s: s["messages"] >= resumed_at + 10)
+            child.stdin.write("close\n")
+            child.stdin.flush()
+            assert child.wait(10) == 0
+        finally:
+            child.kill()
+            child.wait()
+    first, second = (Path(p) for p in state["files"])
+    assert 5 <= _both_readers(first) <= 13 and first.stat().st_size <= 400_000  # cut at its last complete chunk, with a footer
+    assert _both_readers(second) == 10
