@@ -9,7 +9,9 @@ hold exactly the JSON of ``camera.json`` and ``drill.json`` (their schemas in
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from drillnav.registration.camera import PinholeCamera
@@ -20,7 +22,7 @@ from .calibration import camera_calibration_from_json, camera_calibration_to_jso
 from .markers import marker_set_from_json, marker_set_to_json
 from .messages import decode_json, encode_json
 
-__all__ = ["CALIBRATION_SCHEMA", "ActiveCalibration", "calibration_message", "calibration_message_from_models", "decode_calibration_message"]
+__all__ = ["CALIBRATION_SCHEMA", "ActiveCalibration", "active_calibration_message", "calibration_message", "calibration_message_from_models", "decode_calibration_message"]
 
 CALIBRATION_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -61,6 +63,25 @@ def calibration_message_from_models(*, camera: PinholeCamera, axis_drill: Line3D
     camera_doc = camera_calibration_to_json(camera, rms_px=0.0, per_view_errors_px=[], label=source)
     drill_doc = drill_calibration_to_json(axis_drill, method=source, residual_mm=0.0, residual_deg=0.0, label=source)
     return calibration_message(camera_doc=camera_doc, drill_doc=drill_doc, stamp_ns=stamp_ns, marker_set=marker_set, source=source)
+
+
+def active_calibration_message(*, camera: PinholeCamera, axis_drill: Line3D, stamp_ns: int, marker_set: MarkerSet | None = None,
+                               camera_file: str | Path | None = None, drill_file: str | Path | None = None) -> bytes:
+    """What the daemon publishes at start and after each install: each calibration file's own JSON where the
+    calibration came from a file that exists, else (the twin's) built from the object in use."""
+    camera_doc = _file_doc(camera_file) or camera_calibration_to_json(camera, rms_px=0.0, per_view_errors_px=[], label="in use (no file)")
+    drill_doc = _file_doc(drill_file) or drill_calibration_to_json(axis_drill, method="in use (no file)", residual_mm=0.0, residual_deg=0.0, label="in use (no file)")
+    source = ", ".join(str(f) for f in (camera_file, drill_file) if f is not None and Path(f).is_file()) or "in use (no files)"
+    return calibration_message(camera_doc=camera_doc, drill_doc=drill_doc, stamp_ns=stamp_ns, marker_set=marker_set, source=source)
+
+
+def _file_doc(path: str | Path | None) -> dict[str, Any] | None:
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
 
 
 def decode_calibration_message(data: bytes) -> ActiveCalibration:

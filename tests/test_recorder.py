@@ -1,8 +1,10 @@
 """The recorder on real zenoh: the camera budget, state carried into every file, permissions, retention, a full disk."""
 
+import json
 import os
 import stat
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -266,9 +268,6 @@ with open_session(connect=[ep]) as s:
 
 def test_a_file_size_limit_pauses_and_resumes_without_root(tmp_path):
     """The same failed-write path as a full disk, where no tmpfs can be mounted: RLIMIT_FSIZE in a child process."""
-    import json
-    import sys
-
     ep = free_endpoint()
     rng = np.random.default_rng(1)
     with open_session(listen=[ep]) as a:
@@ -306,3 +305,21 @@ def test_a_file_size_limit_pauses_and_resumes_without_root(tmp_path):
     first, second = (Path(p) for p in state["files"])
     assert 5 <= _both_readers(first) <= 13 and first.stat().st_size <= 400_000  # cut at its last complete chunk, with a footer
     assert _both_readers(second) == 10
+
+
+def test_the_calibration_message_carries_the_files_as_they_are(tmp_path):
+    from drillnav.schemas.calibration import write_camera_calibration
+    from drillnav.schemas.calibration_message import active_calibration_message
+
+    scene = make_scene(seed=3, render=False)
+    cam_file = tmp_path / "camera.json"
+    write_camera_calibration(cam_file, scene.calibrated_camera, rms_px=0.31, per_view_errors_px=[0.3, 0.32], label="OR 2")
+    data = active_calibration_message(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, stamp_ns=7,
+                                      camera_file=cam_file, drill_file=tmp_path / "none.json")
+    doc = msg.decode_json(data)
+    assert doc["camera"] == json.loads(cam_file.read_text()) and doc["source"] == str(cam_file)
+    assert doc["drill"]["label"] == "in use (no file)"  # no drill file: the axis in use
+    cal = decode_calibration_message(data)
+    assert np.allclose(cal.camera.camera_matrix, scene.calibrated_camera.camera_matrix) and np.allclose(cal.axis_drill.point_mm, scene.calibrated_axis_drill.point_mm)
+    with pytest.raises(ValueError, match="camera"):
+        decode_calibration_message(msg.encode_json({"stamp_ns": 1, "camera": {"schema": "x"}, "drill": doc["drill"]}))
