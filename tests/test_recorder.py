@@ -323,3 +323,21 @@ def test_the_calibration_message_carries_the_files_as_they_are(tmp_path):
     assert np.allclose(cal.camera.camera_matrix, scene.calibrated_camera.camera_matrix) and np.allclose(cal.axis_drill.point_mm, scene.calibrated_axis_drill.point_mm)
     with pytest.raises(ValueError, match="camera"):
         decode_calibration_message(msg.encode_json({"stamp_ns": 1, "camera": {"schema": "x"}, "drill": doc["drill"]}))
+
+
+def test_a_writer_behind_drops_counts_and_reports_never_blocking_the_bus(tmp_path):
+    frame = _frame(0)
+    events = []
+    ep = free_endpoint()
+    with open_session(listen=[ep]) as a, open_session(connect=[ep]) as b:
+        # Re-encoding 720p frames takes the writer ~10 ms each; 60 arrive at once into a queue of 2.
+        rec = Recorder(session=b, prefix=P, folder=tmp_path, name="behind", camera_jpeg_quality=75, queue_size=2, on_event=lambda lvl, m: events.append((lvl, m)))
+        time.sleep(0.5)
+        for _ in range(60):
+            a.put(key(P, "camera_image"), frame)
+        _wait(lambda: rec.messages + rec.dropped >= 60)
+        (path,) = rec.close()
+    st = rec.status()
+    assert st.dropped > 0 and st.messages + st.dropped == 60
+    assert events and events[0][0] == "warning" and "dropped" in events[0][1]
+    assert sum(1 for _ in RecordingReader(path)) == st.messages
