@@ -62,6 +62,8 @@ def test_replay_cli_and_bad_file(tmp_path, capsys):
     bad.write_bytes(b"not an mcap file at all")
     assert main(["replay", str(bad), "--wait", "0"]) == 1
     assert "not a readable MCAP" in capsys.readouterr().err
+    with pytest.raises(RecordingUnreadable, match="not a readable MCAP"):
+        list(RecordingReader(bad))
     assert main(["replay", str(tmp_path / "none.mcap"), "--wait", "0"]) == 1
     assert "no such file" in capsys.readouterr().err
     with pytest.raises(ValueError, match="rate"):
