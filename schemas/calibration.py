@@ -25,6 +25,8 @@ __all__ = [
     "read_camera_calibration",
     "write_drill_calibration",
     "read_drill_calibration",
+    "drill_calibration_to_json",
+    "drill_calibration_from_json",
 ]
 
 
@@ -82,8 +84,8 @@ def read_camera_calibration(path: str | Path) -> PinholeCamera:
     return camera_calibration_from_json(_read_json(path), source=str(path))
 
 
-def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: str, residual_mm: float, residual_deg: float, label: str) -> None:
-    doc = {
+def drill_calibration_to_json(axis_camera: Line3D, *, method: str, residual_mm: float, residual_deg: float, label: str) -> dict[str, Any]:
+    return {
         "schema": "drillnav.drill/1",
         "label": label,
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -93,10 +95,18 @@ def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: st
         "residual_mm": float(residual_mm),
         "residual_deg": float(residual_deg),
     }
+
+
+def drill_calibration_from_json(doc: Any, *, source: str = "drill calibration") -> Line3D:
+    """The drill axis in the camera frame D; ``ValueError`` naming the missing or bad field otherwise."""
+    _validate(doc, DRILL_SCHEMA, source)
+    return axis_from_json(doc["axis_camera"], name=f"{source}: axis_camera")
+
+
+def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: str, residual_mm: float, residual_deg: float, label: str) -> None:
+    doc = drill_calibration_to_json(axis_camera, method=method, residual_mm=residual_mm, residual_deg=residual_deg, label=label)
     Path(path).write_text(json.dumps(doc, indent=1))
 
 
 def read_drill_calibration(path: str | Path) -> Line3D:
-    doc = _read_json(path)
-    _validate(doc, DRILL_SCHEMA, str(path))
-    return axis_from_json(doc["axis_camera"], name=f"{path}: axis_camera")
+    return drill_calibration_from_json(_read_json(path), source=str(path))

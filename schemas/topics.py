@@ -37,6 +37,7 @@ TOPICS: dict[str, Topic] = {
     "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz"),
     "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
     "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
+    "calibration": Topic("calibration/active", "drillnav.Calibration", Encoding.JSON, "the calibrations in use (camera.json, drill.json, markers), at start and on each install; first in every recorded file"),
     "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
 }
 

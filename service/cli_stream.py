@@ -51,20 +51,45 @@ def register(subparsers) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from .replay import replay
+    from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+    from drillnav.schemas.markers import read_marker_set
 
+    from .replay import RecordingReader, replay, replay_node
+
+    RecordingReader(args.file)  # a missing file is refused before the bus opens
     with open_session(mode="peer", listen=args.listen or [], connect=args.connect or [], multicast_scouting=False) as session:
-        time.sleep(args.wait)  # let subscribers connect before the first message
-        n = replay(args.file, session, rate=args.rate)
-    print(f"replayed {n} messages from {args.file}")
+        node = None
+        if args.register:
+            # The calibrations given, else the ones the file carries (every recorded file starts with them).
+            node = replay_node(args.file, session=session, prefix=args.prefix,
+                               marker_set=read_marker_set(args.markers) if args.markers else None,
+                               camera=read_camera_calibration(args.camera) if args.camera else None,
+                               axis_drill=read_drill_calibration(args.drill) if args.drill else None)
+        try:
+            time.sleep(args.wait)  # let subscribers connect before the first message
+            result = replay(args.file, session, rate=args.rate, state_settle_s=args.settle)
+            if node is not None:
+                time.sleep(1.0)  # the last frames' axes
+        finally:
+            if node is not None:
+                node.close()
+    print(f"replayed {result.messages} messages from {args.file}" + (f"; {result.cut}" if result.cut else ""))
+    if node is not None:
+        print(f"registration node: {node.counters.registrations} registration(s), {node.counters.axes_published} axes published")
     return 0
 
 
 def register_replay(subparsers) -> None:
-    p = subparsers.add_parser("replay", help="republish an MCAP recording at the recorded timing")
+    p = subparsers.add_parser("replay", help="republish an MCAP recording at the recorded timing (also a file cut by a crash, up to the cut)")
     p.add_argument("file")
     p.add_argument("--rate", type=float, default=1.0)
     p.add_argument("--listen", action="append", help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448")
     p.add_argument("--connect", action="append", help="zenoh endpoint to connect to, e.g. the daemon's tcp/127.0.0.1:7447")
+    p.add_argument("--prefix", default="drillnav")
     p.add_argument("--wait", type=float, default=1.0, help="seconds to wait for subscribers before replaying")
+    p.add_argument("--settle", type=float, default=2.0, help="seconds to pause after the state a file starts with (shots register before frames follow)")
+    p.add_argument("--register", action="store_true", help="run a registration node here and publish the axes again")
+    p.add_argument("--camera", help="camera.json for --register (default: the calibration recorded in the file)")
+    p.add_argument("--drill", help="drill.json for --register (default: the calibration recorded in the file)")
+    p.add_argument("--markers", help="markers file for --register (default: the file's, else the standard design)")
     p.set_defaults(func=_replay)
