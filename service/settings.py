@@ -82,6 +82,16 @@ class CtSettings(_Section):
     at_mm: tuple[float, float, float] | None = None  # the CT point the C-arm is centred on (default: the plan's first entry)
 
 
+class IgtlSettings(_Section):
+    """OpenIGTLink for 3D Slicer (service/igtl_server.py, docs/slicer.md)."""
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(18944, ge=1, le=65535, description="18944: OpenIGTLink's registered port, Slicer's default")
+    model_start_mm: float = Field(60.0, description="the drill model starts this far along the calibrated axis from its point")
+    model_length_mm: float = Field(200.0, gt=0)
+    model_radius_mm: float = Field(1.5, gt=0)
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="DRILLNAV_", env_nested_delimiter="__", extra="forbid")
     twin: bool = False
@@ -94,6 +104,7 @@ class Settings(BaseSettings):
     twin_scene: TwinSettings = Field(default_factory=TwinSettings)
     calibration: CalibrationSettings = Field(default_factory=CalibrationSettings)
     ct: CtSettings = Field(default_factory=CtSettings)
+    igtl: IgtlSettings = Field(default_factory=IgtlSettings)
 
 
 class SettingsError(DrillnavError):

@@ -1,0 +1,227 @@
+"""OpenIGTLink: a real node fed by the twin recording, the server on a free port, and an independent client.
+
+The client below parses the protocol from its specification (58-byte header,
+big-endian, CRC-64 ECMA-182 over the body) with struct alone: it shares no code
+with the server's encoder (pyigtl).
+"""
+
+import socket
+import struct
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import free_endpoint, free_port
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.carm import CArmView
+from drillnav.registration.line import Line3D
+from drillnav.schemas import igtl
+from drillnav.schemas import messages as msg
+from drillnav.schemas.topics import key
+from drillnav.service.bus import open_session
+from drillnav.service.igtl_server import IgtlServer
+from drillnav.service.node import RegistrationNode
+from drillnav.service.replay import iter_recording
+
+RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
+HEADER = struct.Struct(">H12s20sIIQQ")
+_ECMA182 = 0x42F0E1EBA9EA3693
+
+
+def crc64(data: bytes) -> int:
+    crc = 0
+    for byte in data:
+        crc ^= byte << 56
+        for _ in range(8):
+            crc = ((crc << 1) ^ _ECMA182) & 0xFFFFFFFFFFFFFFFF if crc & (1 << 63) else (crc << 1) & 0xFFFFFFFFFFFFFFFF
+    return crc
+
+
+class RawClient:
+    """Connects, reconnects after the server goes away, and keeps every message as (arrival_s, type, device, stamp_ns, body)."""
+
+    def __init__(self, port: int) -> None:
+        self.port, self.messages, self.connections = port, [], 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _recv(self, sock, n):
+        buf = b""
+        while len(buf) < n:
+            chunk = sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionError("closed")
+            buf += chunk
+        return buf
+
+    def _run(self):
+        while not self._stop.is_set():
+            try:
+                sock = socket.create_connection(("127.0.0.1", self.port), timeout=0.5)
+            except OSError:
+                time.sleep(0.05)
+                continue
+            self.connections += 1
+            sock.settimeout(None)
+            try:
+                while not self._stop.is_set():
+                    version, mtype, device, sec, frac, size, crc = HEADER.unpack(self._recv(sock, HEADER.size))
+                    body = self._recv(sock, size)
+                    mtype, device = mtype.rstrip(b"\0").decode(), device.rstrip(b"\0").decode()
+                    if mtype == "TRANSFORM":
+                        assert crc64(body) == crc, "CRC-64 of a TRANSFORM body"
+                    stamp_ns = sec * 1_000_000_000 + round(frac * 1e9 / 2**32)
+                    self.messages.append((time.monotonic(), mtype, device, stamp_ns, body))
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                sock.close()
+
+    def of(self, device):
+        return [m for m in list(self.messages) if m[2] == device]
+
+    def wait_for(self, device, count=1, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while len(self.of(device)) < count and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return self.of(device)
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(timeout=2)
+
+
+def play_at_camera_rate(player, node, fps=30.0):
+    """The recording's shots, then (once both are registered) its 20 camera frames at ``fps``: the 30 Hz camera."""
+    recorded = list(iter_recording(RECORDING))
+    for topic, _, data in recorded:
+        if topic.endswith("fluoro/shot"):
+            player.put(topic, data)
+    deadline = time.monotonic() + 30
+    while (len(node.shots) < 2 or node.counters.registrations < 2) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert node.counters.registrations >= 2, f"the node did not register both shots: {node.status()}"
+    start = time.monotonic()
+    frames = [(t, d) for t, _, d in recorded if t.endswith("camera/image")]
+    for i, (topic, data) in enumerate(frames):
+        time.sleep(max(0.0, start + i / fps - time.monotonic()))
+        player.put(topic, data)
+    return len(frames)
+
+
+def transform_matrix(body: bytes) -> np.ndarray:
+    v = struct.unpack(">12f", body)  # R11 R21 R31 R12 R22 R32 R13 R23 R33 TX TY TZ
+    m = np.eye(4)
+    m[:3, :3] = np.array(v[:9]).reshape(3, 3).T
+    m[:3, 3] = v[9:]
+    return m
+
+
+def test_ras_conversion_and_image_geometry():
+    lps = np.array([[1, 0, 0, 10.0], [0, 0, -1, -20], [0, 1, 0, 30], [0, 0, 0, 1]])
+    ras = igtl.ras_transform(lps, source_is_patient=False)
+    # A drill-frame point lands at the same patient point, with L and P flipped to R and A.
+    x = np.array([1.0, 2, 3, 1])
+    assert np.allclose(ras @ x, (lps @ x) * [-1, -1, 1, 1])
+    both = igtl.ras_transform(lps, source_is_patient=True)
+    assert np.allclose(both @ (x * [-1, -1, 1, 1]), (lps @ x) * [-1, -1, 1, 1])
+    with pytest.raises(ValueError, match="4x4"):
+        igtl.ras_transform(np.eye(3), source_is_patient=False)
+    view = CArmView.from_positioner(primary_deg=20, secondary_deg=-10, source_to_detector_mm=1164, source_to_isocenter_mm=624,
+                                    pixel_spacing_mm=(0.304, 0.304), rows=976, columns=976)
+    lps_from_ijk = igtl.fluoro_image_lps_from_ijk(view)
+    for u, v in [(0, 0), (975, 0), (300.5, 700)]:
+        p = lps_from_ijk @ [u, v, 0, 1]
+        h = view.projection_matrix @ p
+        assert np.allclose(h[:2] / h[2], [u, v], atol=1e-6)  # each pixel's detector point projects back onto it
+        assert abs(np.linalg.norm(p[:3] - view.source_position_mm) - 1164) < 300  # on the detector, beyond the isocentre
+    centre = lps_from_ijk @ [487.5, 487.5, 0, 1]
+    assert abs(np.linalg.norm(centre[:3] - view.source_position_mm) - 1164) < 1e-6
+
+
+def test_drill_cylinder_lies_along_the_axis():
+    axis = Line3D(point_mm=[0, 45, 0], direction=[0, -0.2, 1])
+    points, cells = igtl.drill_cylinder(axis, start_mm=60, length_mm=200, radius_mm=1.5, sides=12)
+    rim = points[:24]
+    assert np.allclose(axis.distance_to_point(rim.astype(float)), 1.5, atol=1e-4)
+    s = (points.astype(float) - axis.point_mm) @ axis.direction
+    assert s.min() == pytest.approx(60, abs=1e-3) and s.max() == pytest.approx(260, abs=1e-3)
+    assert cells.max() < len(points)
+    with pytest.raises(ValueError, match="radius"):
+        igtl.drill_cylinder(axis, start_mm=0, length_mm=10, radius_mm=0)
+
+
+def test_slicer_client_gets_drill_pose_image_and_reconnects():
+    scene = make_scene(seed=21, render=False)
+    port, ep = free_port(), free_endpoint()
+    axes = []
+    client = None
+    with open_session(listen=[ep]) as player, open_session(connect=[ep]) as node_session:
+        node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
+                                axis_drill=scene.calibrated_axis_drill)
+        try:
+            node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
+            server = IgtlServer(session=node_session, prefix="drillnav", axis_drill=scene.calibrated_axis_drill, port=port)
+            with server:
+                client = RawClient(port)
+                assert client.wait_for(igtl.DEVICE_DRILL_MODEL), "the drill model is sent as a client connects"
+                time.sleep(0.3)
+                play_at_camera_rate(player, node)
+                deadline = time.monotonic() + 5
+                while time.monotonic() < deadline and len(client.of(igtl.DEVICE_DRILL_TO_CARM)) < len(axes):
+                    time.sleep(0.05)
+                images = client.wait_for("Fluoro-inlet") + client.wait_for("Fluoro-outlet")
+            got = client.of(igtl.DEVICE_DRILL_TO_CARM)
+            assert len(axes) >= 10, f"the node published only {len(axes)} axes ({node.status()})"
+            assert len(got) == len(axes), "one DrillToCArm per published axis"
+            stamps = np.array([a["source_frame_stamp_ns"] for a in axes])
+            for _, _, _, stamp_ns, body in got:
+                # Stamped with the camera frame's capture stamp; pyigtl carries it as float seconds (~0.24 us grain).
+                nearest = int(np.argmin(np.abs(stamps - stamp_ns)))
+                assert abs(int(stamps[nearest]) - stamp_ns) < 1000
+                a = axes[nearest]
+                carm_from_drill = np.asarray(a["carm_from_drill"])
+                m = transform_matrix(body)
+                assert np.allclose(m, np.diag([-1, -1, 1, 1]) @ carm_from_drill, atol=1e-3)
+                # The published axis, carried by the received transform, is the axis in RAS.
+                axis_ras = scene.calibrated_axis_drill.transformed(m)
+                assert np.allclose(axis_ras.direction, np.asarray(a["direction"]) * [-1, -1, 1], atol=1e-5)
+                assert axis_ras.distance_to_point(np.asarray(a["point_mm"]) * [-1, -1, 1]) < 1e-3
+            arrivals = np.array([m[0] for m in got])
+            rate_hz = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
+            print(f"DrillToCArm: {len(got)} transforms at {rate_hz:.1f} Hz")
+            assert rate_hz > 20, f"DrillToCArm arrived at {rate_hz:.1f} Hz"
+            # Each shot arrives as an IMAGE on its detector, float32, one slice of rows x columns.
+            assert {m[2] for m in images} == {"Fluoro-inlet", "Fluoro-outlet"}
+            body = images[0][4]
+            head = struct.unpack(">HBBBBHHH12f6H", body[:72])
+            assert head[2] == 10 and head[4] == 1  # float32, RAS
+            view = node.shots["inlet"].view if images[0][2] == "Fluoro-inlet" else node.shots["outlet"].view
+            assert head[5:8] == (view.columns, view.rows, 1) and len(body) - 72 == view.rows * view.columns * 4
+            expected = np.diag([-1, -1, 1, 1]) @ igtl.fluoro_image_lps_from_ijk(view)
+            tsn = np.array(head[8:17]).reshape(3, 3).T  # columns: i, j, k directions with spacing
+            assert np.allclose(tsn, expected[:3, :3], atol=1e-4)
+            centre = expected @ [(view.columns - 1) / 2, (view.rows - 1) / 2, 0, 1]
+            assert np.allclose(head[17:20], centre[:3], atol=0.05)
+
+            # The server restarts on the same port: the client reconnects and gets the scene again.
+            before = client.connections
+            with IgtlServer(session=node_session, prefix="drillnav", axis_drill=scene.calibrated_axis_drill, port=port) as again:
+                deadline = time.monotonic() + 10
+                while client.connections == before and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert client.connections == before + 1, "the client reconnected to the restarted server"
+                models = client.wait_for(igtl.DEVICE_DRILL_MODEL, count=2)
+                assert len(models) == 2
+                count = len(client.of(igtl.DEVICE_DRILL_TO_CARM))
+                node_session.put(key("drillnav", "axis_carm"), msg.encode_json(axes[-1]))
+                assert len(client.wait_for(igtl.DEVICE_DRILL_TO_CARM, count=count + 1)) == count + 1
+                assert again.clients == 1
+        finally:
+            if client is not None:
+                client.close()
+            node.close()
