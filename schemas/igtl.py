@@ -84,7 +84,7 @@ def fluoro_image_lps_from_ijk(view: CArmView) -> NDArray[np.float64]:
     """
     k, source_from_carm = view.decompose()
     carm_from_source = invert(source_from_carm)
-    f_mm = float(k[0, 0]) * view.pixel_spacing_mm[1]  # K[0, 0] = f / column spacing
+    f_mm = abs(float(k[0, 0])) * view.pixel_spacing_mm[1]  # |K[0, 0]| = f / column spacing (negative: a mirrored detector)
     kinv = np.linalg.inv(k)
     detector_from_pixel = np.eye(4)
     detector_from_pixel[:3, 0] = f_mm * kinv[:, 0]

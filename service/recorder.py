@@ -14,15 +14,15 @@ import time
 from pathlib import Path
 
 import zenoh
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.writer import CompressionType, Writer
 
 from drillnav.schemas.messages import JSON_SCHEMAS, protobuf_schema
+from drillnav.schemas.protobuf_types import PROTOBUF_TYPES
 from drillnav.schemas.topics import Encoding, topic_for_key
 
 __all__ = ["Recorder"]
 
-_PROTO = {"foxglove.CompressedImage": CompressedImage}
+_PROTO = PROTOBUF_TYPES
 
 
 class Recorder:

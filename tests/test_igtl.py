@@ -9,12 +9,12 @@ import socket
 import struct
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import free_endpoint, free_port
+from twin_replay import play_at_camera_rate
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.carm import CArmView
 from drillnav.registration.line import Line3D
@@ -24,9 +24,7 @@ from drillnav.schemas.topics import key
 from drillnav.service.bus import open_session
 from drillnav.service.igtl_server import IgtlServer
 from drillnav.service.node import RegistrationNode
-from drillnav.service.replay import iter_recording
 
-RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 HEADER = struct.Struct(">H12s20sIIQQ")
 _ECMA182 = 0x42F0E1EBA9EA3693
 
@@ -93,24 +91,6 @@ class RawClient:
     def close(self):
         self._stop.set()
         self._thread.join(timeout=2)
-
-
-def play_at_camera_rate(player, node, fps=30.0):
-    """The recording's shots, then (once both are registered) its 20 camera frames at ``fps``: the 30 Hz camera."""
-    recorded = list(iter_recording(RECORDING))
-    for topic, _, data in recorded:
-        if topic.endswith("fluoro/shot"):
-            player.put(topic, data)
-    deadline = time.monotonic() + 30
-    while (len(node.shots) < 2 or node.counters.registrations < 2) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert node.counters.registrations >= 2, f"the node did not register both shots: {node.status()}"
-    start = time.monotonic()
-    frames = [(t, d) for t, _, d in recorded if t.endswith("camera/image")]
-    for i, (topic, data) in enumerate(frames):
-        time.sleep(max(0.0, start + i / fps - time.monotonic()))
-        player.put(topic, data)
-    return len(frames)
 
 
 def transform_matrix(body: bytes) -> np.ndarray:
