@@ -24,6 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "cli_calibrate",
     "cli_serve",
     "cli_stream",
+    "cli_calibration",
 )
 
 EXIT_USAGE = 2
