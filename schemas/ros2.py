@@ -49,8 +49,8 @@ _MM_TO_M = 1e-3
 # so the hash is too. Humble has no type hashes (rmw_zenoh sends "TypeHashNotSupported" there).
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
-# rmw_zenoh's QoS defaults (qos.cpp): reliable, transient-local, keep-last 42; only what differs is written.
-_VOLATILE = 2  # RMW_QOS_POLICY_DURABILITY_VOLATILE
+# rmw's QoS enums (rmw/types.h): RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LAST.
+_RELIABLE, _VOLATILE, _KEEP_LAST = 1, 2, 1
 
 
 def _mangle(name: str) -> str:
@@ -87,12 +87,16 @@ def node_token(*, domain_id: int, zid: str, node_id: int, namespace: str, node: 
 
 
 def qos_keyexpr(*, depth: int = 10) -> str:
-    """A reliable, volatile, keep-last ``depth`` publisher, in rmw_zenoh's QoS key format (defaults left empty)."""
-    reliability = ""  # reliable is the default
-    durability = str(_VOLATILE)
-    history = ""      # keep-last is the default
-    depth_s = "" if depth == 42 else str(int(depth))
-    return f"{reliability}:{durability}:{history},{depth_s}:,:,:,,"
+    """A reliable, volatile, keep-last ``depth`` publisher in rmw_zenoh's QoS key format.
+
+    rmw_zenoh leaves a field empty when it equals its default, and its default durability differs
+    between releases (transient-local in some, volatile in others); the parser takes an explicit value as well,
+    so reliability, durability, history and depth are always written. Deadline, lifespan and
+    liveliness stay empty: infinite / automatic in every release.
+    """
+    if depth < 1:
+        raise ValueError(f"history depth must be >= 1, got {depth}")
+    return f"{_RELIABLE}:{_VOLATILE}:{_KEEP_LAST},{int(depth)}:,:,:,,"
 
 
 def publisher_token(*, domain_id: int, zid: str, node_id: int, entity_id: int, namespace: str, node: str, topic: str,

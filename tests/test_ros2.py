@@ -52,7 +52,7 @@ def test_key_and_tokens_follow_rmw_zenoh():
     parts = token.split("/")
     # rmw_zenoh's Entity::make(keyexpr): 13 non-empty parts for a publisher, '/' in names mangled to '%'.
     assert parts == ["@ros2_lv", "7", "1f2e", "0", "1", "MP", "%", "%", "drillnav", "%drillnav%drill_axis",
-                     "geometry_msgs::msg::dds_::PoseStamped_", HASH, ":2:,10:,:,:,,"]
+                     "geometry_msgs::msg::dds_::PoseStamped_", HASH, "1:2:1,10:,:,:,,"]
     qos = parts[-1].split(":")  # keyexpr_to_qos: 6 parts; history, deadline, lifespan split by ',' into 2, 2, 2 and liveliness into 3
     assert len(qos) == 6 and [len(p.split(",")) for p in qos[2:]] == [2, 2, 2, 3]
     node = ros2.node_token(domain_id=7, zid="1f2e", node_id=0, namespace="/", node="drillnav").split("/")
