@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -127,6 +128,7 @@ class IgtlServer:
         if not 0 < port < 65536:
             raise ValueError(f"OpenIGTLink port must be 1..65535, got {port}")
         self.session, self.prefix, self.host, self.port = session, prefix, host, port
+        self._model_mm = (model_start_mm, model_length_mm, model_radius_mm)
         self._model = igtl.drill_model_message(axis_drill, start_mm=model_start_mm, length_mm=model_length_mm, radius_mm=model_radius_mm, stamp_ns=0)
         self.counters = IgtlCounters()
         self._lock = threading.Lock()
@@ -177,6 +179,12 @@ class IgtlServer:
             clients = list(self._clients)
         for c in clients:
             c.close()
+
+    def set_drill_axis(self, axis_drill: Line3D) -> None:
+        """A new drill calibration (installed over REST): every client gets the new model at once, later ones as they connect."""
+        start, length, radius = self._model_mm
+        self._model = igtl.drill_model_message(axis_drill, start_mm=start, length_mm=length, radius_mm=radius, stamp_ns=time.time_ns())
+        self._send(self._model, latch=True)
 
     @property
     def clients(self) -> int:

@@ -55,11 +55,16 @@ class ScenePublisher:
         self._subs: list = []
         self._thread: threading.Thread | None = None
 
+    def set_camera(self, camera: PinholeCamera) -> None:
+        """A new drill-camera calibration (installed over REST), published at once and from then on."""
+        self.camera = camera
+        cal = fox.drill_camera_calibration(camera, stamp_ns=time.time_ns())
+        self._put(key(self.prefix, "scene_calibration", fox.FRAME_DRILL_CAMERA), cal.SerializeToString(), latch="drill_camera")
+
     def __enter__(self) -> "ScenePublisher":
         p = self.prefix
         if self.camera is not None:
-            cal = fox.drill_camera_calibration(self.camera, stamp_ns=time.time_ns())
-            self._put(key(p, "scene_calibration", fox.FRAME_DRILL_CAMERA), cal.SerializeToString(), latch="drill_camera")
+            self.set_camera(self.camera)
         try:
             self._subs = [self.session.declare_subscriber(key(p, "axis_carm"), self._guard(self._on_axis_carm)),
                           self.session.declare_subscriber(key(p, "axis_ct"), self._guard(self._on_axis_ct)),

@@ -23,6 +23,7 @@ from websockets.sync.client import connect
 
 from conftest import free_endpoint, free_port
 from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.line import Line3D
 from drillnav.schemas import foxglove_scene as fox
@@ -98,6 +99,7 @@ class FoxgloveWsClient:
         self.messages: list[tuple[str, str, bytes]] = []
         self.server_info: dict | None = None
         self.subprotocol: str | None = None
+        self.statuses: list[dict] = []
         self._stop, self._ready = threading.Event(), threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -123,6 +125,15 @@ class FoxgloveWsClient:
             doc = json.loads(frame)
             if doc["op"] == "serverInfo":
                 self.server_info = doc
+            elif doc["op"] == "status":
+                self.statuses.append(doc)
+                # foxglove-sdk 0.30 may refuse the first subscribe to a channel it advertised a moment before
+                # (docs/foxglove.md); a client asks again, as it would after any refused subscription.
+                if doc["message"].startswith("Unknown channel ID: "):
+                    channel_id = int(doc["message"].rsplit(" ", 1)[1])
+                    retry = [sid for sid, cid in self.subscriptions.items() if cid == channel_id]
+                    time.sleep(0.02)
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sid, "channelId": channel_id} for sid in retry]}))
             elif doc["op"] == "advertise":
                 subs = []
                 for ch in doc["channels"]:
@@ -177,11 +188,17 @@ def test_recording_and_live_websocket_carry_the_scene(tmp_path):
         recorder = Recorder(session=s, prefix="drillnav", folder=tmp_path, name="fox")
         try:
             with FoxgloveBridge(session=s, prefix="drillnav", port=ws_port) as bridge, \
-                    ScenePublisher(session=s, prefix="drillnav", camera=scene.calibrated_camera, republish_period_s=0.5):
+                    ScenePublisher(session=s, prefix="drillnav", camera=scene.calibrated_camera, republish_period_s=0.5) as scene_pub:
                 client = FoxgloveWsClient(f"ws://127.0.0.1:{ws_port}")
                 time.sleep(0.3)
                 play_at_camera_rate(player, node)
                 time.sleep(1.2)  # one republish of the latched scene, and the annotations' period
+                # A camera calibration installed while running replaces the drill camera's model.
+                k = scene.calibrated_camera.camera_matrix.copy()
+                k[0, 0] += 11.0
+                scene_pub.set_camera(PinholeCamera(width=scene.calibrated_camera.width, height=scene.calibrated_camera.height, camera_matrix=k,
+                                                   distortion=scene.calibrated_camera.distortion))
+                time.sleep(0.3)
                 views = {n: sh.view for n, sh in node.shots.items()}
                 assert bridge.forwarded > 0
         finally:
@@ -190,8 +207,11 @@ def test_recording_and_live_websocket_carry_the_scene(tmp_path):
             files = recorder.close()
             node.close()
     assert client.server_info is not None and client.server_info["name"] == "drillnav" and client.subprotocol == "foxglove.sdk.v1"
+    print("refused subscriptions (retried):", [d["message"] for d in client.statuses])
     live = [(t, s, PROTOBUF_TYPES[s].FromString(p)) for t, s, p in client.messages if s in PROTOBUF_TYPES]
     check_scene(live, views, "live")
+    fx = [m.K[0] for _, s, m in live if s == "foxglove.CameraCalibration" and m.frame_id == "drill_camera"]
+    assert fx[0] == scene.calibrated_camera.camera_matrix[0, 0] and fx[-1] == fx[0] + 11.0
     print(f"live: {len(client.messages)} messages on {len(client.channels)} channels")
 
     recorded, counts = [], {}

@@ -144,20 +144,28 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
         node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
                                 axis_drill=scene.calibrated_axis_drill)
         try:
-            node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
+            axis_arrivals = []
+            node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: (axes.append(msg.decode_json(s.payload.to_bytes())), axis_arrivals.append(time.monotonic())))
             server = IgtlServer(session=node_session, prefix="drillnav", axis_drill=scene.calibrated_axis_drill, port=port)
             with server:
                 client = RawClient(port)
                 assert client.wait_for(igtl.DEVICE_DRILL_MODEL), "the drill model is sent as a client connects"
                 time.sleep(0.3)
                 play_at_camera_rate(player, node)
+
+                def newest_arrived():
+                    poses = client.of(igtl.DEVICE_DRILL_TO_CARM)
+                    return bool(poses and axes) and abs(poses[-1][3] - axes[-1]["source_frame_stamp_ns"]) < 1000
                 deadline = time.monotonic() + 5
-                while time.monotonic() < deadline and len(client.of(igtl.DEVICE_DRILL_TO_CARM)) < len(axes):
+                while time.monotonic() < deadline and not newest_arrived():
                     time.sleep(0.05)
                 images = client.wait_for("Fluoro-inlet") + client.wait_for("Fluoro-outlet")
             got = client.of(igtl.DEVICE_DRILL_TO_CARM)
             assert len(axes) >= 10, f"the node published only {len(axes)} axes ({node.status()})"
-            assert len(got) == len(axes), "one DrillToCArm per published axis"
+            # One per axis, except that a pose not yet sent when the next arrives is replaced by it (newest wins):
+            # on a starved machine a few are superseded, never delayed; the last one always arrives.
+            assert len(got) >= len(axes) - 3, f"{len(got)} DrillToCArm for {len(axes)} axes"
+            assert newest_arrived(), "the newest pose arrives"
             stamps = np.array([a["source_frame_stamp_ns"] for a in axes])
             for _, _, _, stamp_ns, body in got:
                 # Stamped with the camera frame's capture stamp; pyigtl carries it as float seconds (~0.24 us grain).
@@ -173,8 +181,10 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
                 assert axis_ras.distance_to_point(np.asarray(a["point_mm"]) * [-1, -1, 1]) < 1e-3
             arrivals = np.array([m[0] for m in got])
             rate_hz = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
-            print(f"DrillToCArm: {len(got)} transforms at {rate_hz:.1f} Hz")
-            assert rate_hz > 20, f"DrillToCArm arrived at {rate_hz:.1f} Hz"
+            axis_rate_hz = (len(axis_arrivals) - 1) / (axis_arrivals[-1] - axis_arrivals[0])
+            print(f"DrillToCArm: {len(got)} transforms at {rate_hz:.1f} Hz; the node's axes at {axis_rate_hz:.1f} Hz (camera 30 Hz)")
+            # The server keeps the node's pace (the camera's, unless the machine is starved: the node drops stale frames).
+            assert rate_hz > 0.85 * axis_rate_hz and rate_hz > 15, f"DrillToCArm arrived at {rate_hz:.1f} Hz, the axes at {axis_rate_hz:.1f} Hz"
             # Each shot arrives as an IMAGE on its detector, float32, one slice of rows x columns.
             assert {m[2] for m in images} == {"Fluoro-inlet", "Fluoro-outlet"}
             body = images[0][4]
@@ -201,6 +211,12 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
                 node_session.put(key("drillnav", "axis_carm"), msg.encode_json(axes[-1]))
                 assert len(client.wait_for(igtl.DEVICE_DRILL_TO_CARM, count=count + 1)) == count + 1
                 assert again.clients == 1
+                # A drill calibration installed while Slicer is connected reaches it as a new model.
+                moved = Line3D(point_mm=scene.calibrated_axis_drill.point_mm + [5.0, 0, 0], direction=scene.calibrated_axis_drill.direction)
+                again.set_drill_axis(moved)
+                models = client.wait_for(igtl.DEVICE_DRILL_MODEL, count=3)
+                first_point = lambda body: np.array(struct.unpack_from(">3f", body, 40))  # after the 10 counts of the POLYDATA header
+                assert np.allclose(first_point(models[2][4]) - first_point(models[1][4]), [5.0, 0, 0], atol=1e-3)
         finally:
             if client is not None:
                 client.close()

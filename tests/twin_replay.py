@@ -3,6 +3,8 @@
 import time
 from pathlib import Path
 
+import zenoh
+
 from drillnav.service.replay import iter_recording
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
@@ -15,10 +17,18 @@ def play_at_camera_rate(player, node, fps=30.0):
     loaded machine, so a plain replay would race the registration; this plays what the 30 Hz camera would.
     """
     recorded = list(iter_recording(RECORDING))
+    # Shots are megabytes: zenoh's default for a put is to drop it when the link is congested, so they block instead.
+    publishers = {t: player.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK if t.endswith("fluoro/shot") else zenoh.CongestionControl.DROP)
+                  for t, _, _ in recorded if not t.endswith("twin/truth")}
+    # A put before the node's subscription has reached the player's session is lost: wait until each key matches.
+    deadline = time.monotonic() + 30
+    while not all(p.matching_status.matching for p in publishers.values()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert all(p.matching_status.matching for p in publishers.values()), "the node's subscriptions never reached the player"
     for topic, _, data in recorded:
         if topic.endswith("fluoro/shot"):
-            player.put(topic, data)
-    deadline = time.monotonic() + 30
+            publishers[topic].put(data)
+    deadline = time.monotonic() + 60
     while (len(node.shots) < 2 or node.counters.registrations < 2) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert node.counters.registrations >= 2, f"the node did not register both shots: {node.status()}"
@@ -26,5 +36,7 @@ def play_at_camera_rate(player, node, fps=30.0):
     frames = [(t, d) for t, _, d in recorded if t.endswith("camera/image")]
     for i, (topic, data) in enumerate(frames):
         time.sleep(max(0.0, start + i / fps - time.monotonic()))
-        player.put(topic, data)
+        publishers[topic].put(data)
+    for p in publishers.values():
+        p.undeclare()
     return len(frames)
