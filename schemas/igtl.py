@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from drillnav.registration.carm import CArmView
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
+from drillnav.registration.volume import Volume
 
 __all__ = [
     "RAS_FROM_LPS",
@@ -33,10 +34,12 @@ __all__ = [
     "DEVICE_DRILL_MODEL",
     "DEVICE_STATE",
     "DEVICE_ALERT",
+    "DEVICE_CT",
     "ras_transform",
     "transform_message",
     "fluoro_image_lps_from_ijk",
     "fluoro_image_message",
+    "ct_image_message",
     "drill_cylinder",
     "drill_model_message",
     "string_message",
@@ -51,6 +54,7 @@ DEVICE_CT_TO_CARM = "CTToCArm"
 DEVICE_DRILL_MODEL = "DrillModel"
 DEVICE_STATE = "RegistrationState"
 DEVICE_ALERT = "Alert"
+DEVICE_CT = "CT"
 
 
 def ras_transform(target_from_source: ArrayLike, *, source_is_patient: bool) -> NDArray[np.float64]:
@@ -103,6 +107,16 @@ def fluoro_image_message(image_log: NDArray[np.float32], view: CArmView, *, devi
     # pyigtl takes voxels as (k, j, i): one slice of rows x columns.
     return pyigtl.ImageMessage(img[np.newaxis], ijk_to_world_matrix=ras_from_ijk, world_coordinate_system="ras",
                                timestamp=_seconds(stamp_ns), device_name=device)
+
+
+def ct_image_message(volume: Volume, *, stamp_ns: int) -> pyigtl.ImageMessage:
+    """The CT as an IMAGE in RAS: HU rounded to int16 (half of float32's bytes; HU are integers as stored in DICOM)."""
+    hu = np.clip(np.round(np.asarray(volume.data, dtype=np.float32)), -32768, 32767).astype(np.int16)
+    if max(hu.shape) > 65535:
+        raise ValueError(f"OpenIGTLink sizes are 16-bit; the CT is {hu.shape}")
+    # Volume.data is (slice, row, column) = (k, j, i), as pyigtl wants it; patient_from_voxel maps (i, j, k) to LPS.
+    return pyigtl.ImageMessage(hu, ijk_to_world_matrix=RAS_FROM_LPS @ volume.patient_from_voxel, world_coordinate_system="ras",
+                               timestamp=_seconds(stamp_ns), device_name=DEVICE_CT)
 
 
 def drill_cylinder(axis_drill: Line3D, *, start_mm: float, length_mm: float, radius_mm: float, sides: int = 16) -> tuple[NDArray[np.float32], NDArray[np.uint32]]:

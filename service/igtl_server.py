@@ -6,7 +6,8 @@ It subscribes to the node's zenoh outputs and sends, to every connected client:
 - in video-CT mode ``TRANSFORM DrillToCT`` and ``CTToCArm`` for each axis in V;
 - ``IMAGE Fluoro-<view>`` for each new fluoroscopy shot, on its detector plane;
 - ``STRING RegistrationState`` (from each status message) and ``STRING Alert`` (warning and error events);
-- ``POLYDATA DrillModel`` once per connection: a cylinder along the calibrated drill axis in D.
+- ``POLYDATA DrillModel`` once per connection: a cylinder along the calibrated drill axis in D;
+- ``IMAGE CT`` once per connection when a CT is given (video-CT mode), in RAS.
 
 Transforms are in Slicer's RAS world (see :mod:`drillnav.schemas.igtl`). The
 protocol bytes are pyigtl's; the server is our own because pyigtl's
@@ -34,6 +35,7 @@ import zenoh
 
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
+from drillnav.registration.volume import Volume
 from drillnav.schemas import igtl
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
@@ -121,15 +123,17 @@ class IgtlServer:
     session, prefix : the zenoh session and key prefix of the node's outputs.
     axis_drill : the calibrated drill axis in D (mm), for the drill model.
     model_start_mm, model_length_mm, model_radius_mm : the cylinder along that axis (from its point).
+    ct_volume : the preoperative CT (video-CT mode), sent once to each client as it connects.
     """
 
     def __init__(self, *, session: zenoh.Session, prefix: str, axis_drill: Line3D, host: str = "127.0.0.1", port: int = 18944,
-                 model_start_mm: float = 60.0, model_length_mm: float = 200.0, model_radius_mm: float = 1.5) -> None:
+                 model_start_mm: float = 60.0, model_length_mm: float = 200.0, model_radius_mm: float = 1.5, ct_volume: Volume | None = None) -> None:
         if not 0 < port < 65536:
             raise ValueError(f"OpenIGTLink port must be 1..65535, got {port}")
         self.session, self.prefix, self.host, self.port = session, prefix, host, port
         self._model_mm = (model_start_mm, model_length_mm, model_radius_mm)
         self._model = igtl.drill_model_message(axis_drill, start_mm=model_start_mm, length_mm=model_length_mm, radius_mm=model_radius_mm, stamp_ns=0)
+        self._ct_volume = ct_volume
         self.counters = IgtlCounters()
         self._lock = threading.Lock()
         self._clients: list[_Client] = []
@@ -143,6 +147,8 @@ class IgtlServer:
     def __enter__(self) -> "IgtlServer":
         self._listener = socket.create_server((self.host, self.port), reuse_port=False)
         self._latched[igtl.DEVICE_DRILL_MODEL] = self._model.pack()
+        if self._ct_volume is not None:
+            self._latched[igtl.DEVICE_CT] = igtl.ct_image_message(self._ct_volume, stamp_ns=time.time_ns()).pack()
         self._accept_thread = threading.Thread(target=self._accept_loop, name="igtl-accept", daemon=True)
         self._accept_thread.start()
         try:

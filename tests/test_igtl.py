@@ -12,12 +12,14 @@ import time
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from conftest import free_endpoint, free_port
 from twin_replay import play_at_camera_rate
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.carm import CArmView
 from drillnav.registration.line import Line3D
+from drillnav.registration.volume import Volume
 from drillnav.schemas import igtl
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
@@ -91,6 +93,11 @@ class RawClient:
     def close(self):
         self._stop.set()
         self._thread.join(timeout=2)
+
+
+def image_header(body: bytes):
+    """IMAGE body: version, components, scalar type, endian, coordinates, size i j k, t s n c (12 float), sub-volume (6 uint16); then voxels."""
+    return struct.unpack(">HBBBBHHH12f6H", body[:72]), body[72:]
 
 
 def transform_matrix(body: bytes) -> np.ndarray:
@@ -187,11 +194,10 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
             assert rate_hz > 0.85 * axis_rate_hz and rate_hz > 15, f"DrillToCArm arrived at {rate_hz:.1f} Hz, the axes at {axis_rate_hz:.1f} Hz"
             # Each shot arrives as an IMAGE on its detector, float32, one slice of rows x columns.
             assert {m[2] for m in images} == {"Fluoro-inlet", "Fluoro-outlet"}
-            body = images[0][4]
-            head = struct.unpack(">HBBBBHHH12f6H", body[:72])
+            head, pixels = image_header(images[0][4])
             assert head[2] == 10 and head[4] == 1  # float32, RAS
             view = node.shots["inlet"].view if images[0][2] == "Fluoro-inlet" else node.shots["outlet"].view
-            assert head[5:8] == (view.columns, view.rows, 1) and len(body) - 72 == view.rows * view.columns * 4
+            assert head[5:8] == (view.columns, view.rows, 1) and len(pixels) == view.rows * view.columns * 4
             expected = np.diag([-1, -1, 1, 1]) @ igtl.fluoro_image_lps_from_ijk(view)
             tsn = np.array(head[8:17]).reshape(3, 3).T  # columns: i, j, k directions with spacing
             assert np.allclose(tsn, expected[:3, :3], atol=1e-4)
@@ -200,13 +206,24 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
 
             # The server restarts on the same port: the client reconnects and gets the scene again.
             before = client.connections
-            with IgtlServer(session=node_session, prefix="drillnav", axis_drill=scene.calibrated_axis_drill, port=port) as again:
+            # A small CT (video-CT mode): oblique, anisotropic voxels, so the geometry check means something.
+            patient_from_voxel = np.eye(4)
+            patient_from_voxel[:3, :3] = Rotation.from_euler("zyx", [20, -10, 5], degrees=True).as_matrix() @ np.diag([0.8, 0.9, 2.5])
+            patient_from_voxel[:3, 3] = [-100.0, 50.0, 300.0]
+            ct = Volume(data=np.arange(6 * 7 * 8, dtype=np.float32).reshape(6, 7, 8) - 1000.4, patient_from_voxel=patient_from_voxel)
+            with IgtlServer(session=node_session, prefix="drillnav", axis_drill=scene.calibrated_axis_drill, port=port, ct_volume=ct) as again:
                 deadline = time.monotonic() + 10
                 while client.connections == before and time.monotonic() < deadline:
                     time.sleep(0.05)
                 assert client.connections == before + 1, "the client reconnected to the restarted server"
                 models = client.wait_for(igtl.DEVICE_DRILL_MODEL, count=2)
                 assert len(models) == 2
+                head, voxels = image_header(client.wait_for(igtl.DEVICE_CT)[0][4])
+                assert head[2] == 4 and head[4] == 1 and head[5:8] == (8, 7, 6)  # int16, RAS, (i, j, k) sizes
+                ras_from_voxel = np.diag([-1, -1, 1, 1]) @ patient_from_voxel
+                assert np.allclose(np.array(head[8:17]).reshape(3, 3).T, ras_from_voxel[:3, :3], atol=1e-5)
+                assert np.allclose(head[17:20], (ras_from_voxel @ [3.5, 3, 2.5, 1])[:3], atol=1e-3)  # OpenIGTLink sends the centre
+                assert np.array_equal(np.frombuffer(voxels, "<i2").reshape(6, 7, 8), np.round(ct.data).astype(np.int16))
                 count = len(client.of(igtl.DEVICE_DRILL_TO_CARM))
                 node_session.put(key("drillnav", "axis_carm"), msg.encode_json(axes[-1]))
                 assert len(client.wait_for(igtl.DEVICE_DRILL_TO_CARM, count=count + 1)) == count + 1
