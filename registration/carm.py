@@ -155,10 +155,10 @@ class CArmView:
         k = k / scale
         t = np.linalg.solve(k, p[:, 3] / scale)
         if np.linalg.det(rot) < 0:
-            rot, t = -rot, -t
-            k = k.copy()
-            k[:, :2] *= -1  # a mirrored detector; keep R proper
-            k[2, 2] = 1.0
+            # A mirrored detector: flip the source frame's x (F = diag(-1, 1, 1)) so R is proper, and put the
+            # flip into K's first column, as K F F R = K R. The depth row is untouched, so depths stay positive.
+            flip = np.diag([-1.0, 1.0, 1.0])
+            rot, t, k = flip @ rot, flip @ t, k @ flip
         return k, make_transform(rot, t)
 
     @property

@@ -38,6 +38,12 @@ TOPICS: dict[str, Topic] = {
     "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
     "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
     "calibration": Topic("calibration/active", "drillnav.Calibration", Encoding.JSON, "the calibrations in use (camera.json, drill.json, markers), at start and on each install; first in every recorded file"),
+    # Foxglove's own schemas (service/scene_publisher.py, docs/foxglove.md): the navigation scene in 3D and on each image.
+    "scene_tf": Topic("scene/tf", "foxglove.FrameTransform", Encoding.PROTOBUF, "frames carm, drill_camera, carm/<view>, ct, marker/<id> (m, quaternion)"),
+    "scene_entities": Topic("scene/entities", "foxglove.SceneUpdate", Encoding.PROTOBUF, "the drill axis (arrow), its error cone and the registered markers"),
+    "scene_calibration": Topic("scene/calibration/*", "foxglove.CameraCalibration", Encoding.PROTOBUF, "a pinhole model per C-arm view (from its P) and for drill_camera"),
+    "scene_annotations": Topic("scene/annotations/*", "foxglove.ImageAnnotations", Encoding.PROTOBUF, "the axis, its cone and the markers projected onto each C-arm view"),
+    "scene_log": Topic("scene/log", "foxglove.Log", Encoding.PROTOBUF, "registration events as log lines"),
     "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
 }
 

@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "cli_serve",
     "cli_stream",
     "cli_pki",
+    "cli_calibration",
 )
 
 EXIT_USAGE = 2

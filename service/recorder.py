@@ -23,7 +23,6 @@ from __future__ import annotations
 import datetime as dt
 import errno
 import fcntl
-import json
 import os
 import queue
 import shutil
@@ -34,21 +33,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.records import DataEnd, Footer
 from mcap.data_stream import RecordBuilder
 from mcap.writer import CompressionType, Writer
 
 from drillnav.schemas import messages as msg
-from drillnav.schemas.calibration_message import CALIBRATION_SCHEMA
-from drillnav.schemas.topics import TOPICS, Encoding, key, topic_for_key
+from drillnav.schemas.channel_schemas import channel_schema
+from drillnav.schemas.topics import TOPICS, key, topic_for_key
 
 from .settings import RecordingSettings
 
 __all__ = ["CarriedState", "Recorder", "RecorderStatus", "apply_retention", "FILE_METADATA"]
 
-_PROTO = {"foxglove.CompressedImage": CompressedImage}
-_JSON_SCHEMAS = {**msg.JSON_SCHEMAS, "drillnav.Calibration": CALIBRATION_SCHEMA}
 FILE_METADATA = "drillnav.file"  # the metadata record before each file's state block
 _MAGIC = b"\x89MCAP0\r\n"
 
@@ -166,12 +162,8 @@ class _McapFile:
             schema_id, encoding = 0, "application/octet-stream"
         else:
             if topic.schema_name not in self.schemas:
-                if topic.encoding is Encoding.PROTOBUF:
-                    data = msg.protobuf_schema(_PROTO[topic.schema_name])
-                    self.schemas[topic.schema_name] = self.writer.register_schema(name=topic.schema_name, encoding="protobuf", data=data)
-                else:
-                    data = json.dumps(_JSON_SCHEMAS[topic.schema_name]).encode()
-                    self.schemas[topic.schema_name] = self.writer.register_schema(name=topic.schema_name, encoding="jsonschema", data=data)
+                cs = channel_schema(topic)
+                self.schemas[topic.schema_name] = self.writer.register_schema(name=cs.name, encoding=cs.encoding, data=cs.data)
             schema_id, encoding = self.schemas[topic.schema_name], topic.encoding.value
         self.channels[key_expr] = self.writer.register_channel(topic=key_expr, message_encoding=encoding, schema_id=schema_id)
         return self.channels[key_expr]

@@ -176,6 +176,32 @@ class CtSettings(_Section):
     at_mm: tuple[float, float, float] | None = None  # the CT point the C-arm is centred on (default: the plan's first entry)
 
 
+class IgtlSettings(_Section):
+    """OpenIGTLink for 3D Slicer (service/igtl_server.py, docs/slicer.md)."""
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(18944, ge=1, le=65535, description="18944: OpenIGTLink's registered port, Slicer's default")
+    model_start_mm: float = Field(60.0, description="the drill model starts this far along the calibrated axis from its point")
+    model_length_mm: float = Field(200.0, gt=0)
+    model_radius_mm: float = Field(1.5, gt=0)
+
+
+class FoxgloveSettings(_Section):
+    """Foxglove's schemas on zenoh (service/scene_publisher.py) and the live WebSocket (service/foxglove_bridge.py); docs/foxglove.md."""
+    scene: bool = Field(True, description="publish the scene/* topics (so recordings open in Foxglove as a navigation scene)")
+    enabled: bool = Field(False, description="serve the live Foxglove WebSocket")
+    host: str = "127.0.0.1"
+    port: int = Field(8765, ge=1, le=65535)
+
+
+class Ros2Settings(_Section):
+    """The drill axis as geometry_msgs/PoseStamped for rmw_zenoh (service/ros2_bridge.py, docs/ros2.md)."""
+    enabled: bool = False
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 side")
+    topic: str = Field("/drillnav/drill_axis", pattern=r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+    node: str = Field("drillnav", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="DRILLNAV_", env_nested_delimiter="__", extra="forbid")
     twin: bool = False
@@ -188,6 +214,9 @@ class Settings(BaseSettings):
     twin_scene: TwinSettings = Field(default_factory=TwinSettings)
     calibration: CalibrationSettings = Field(default_factory=CalibrationSettings)
     ct: CtSettings = Field(default_factory=CtSettings)
+    igtl: IgtlSettings = Field(default_factory=IgtlSettings)
+    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
+    ros2: Ros2Settings = Field(default_factory=Ros2Settings)
 
 
 class SettingsError(DrillnavError):

@@ -1,0 +1,42 @@
+"""The reference twin recording played into a real node at the camera's 30 Hz (shared by the interop tests)."""
+
+import time
+from pathlib import Path
+
+import zenoh
+
+from drillnav.service.replay import iter_recording
+
+RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
+
+
+def play_at_camera_rate(player, node, fps=30.0):
+    """The recording's shots, then (once both are registered) its 20 camera frames at ``fps``; returns the frame count.
+
+    The recording's camera ran at 15 Hz and its frames follow the shots by less than a registration takes on a
+    loaded machine, so a plain replay would race the registration; this plays what the 30 Hz camera would.
+    """
+    recorded = list(iter_recording(RECORDING))
+    # Shots are megabytes: zenoh's default for a put is to drop it when the link is congested, so they block instead.
+    publishers = {t: player.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK if t.endswith("fluoro/shot") else zenoh.CongestionControl.DROP)
+                  for t, _, _ in recorded if not t.endswith("twin/truth")}
+    # A put before the node's subscription has reached the player's session is lost: wait until each key matches.
+    deadline = time.monotonic() + 30
+    while not all(p.matching_status.matching for p in publishers.values()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert all(p.matching_status.matching for p in publishers.values()), "the node's subscriptions never reached the player"
+    for topic, _, data in recorded:
+        if topic.endswith("fluoro/shot"):
+            publishers[topic].put(data)
+    deadline = time.monotonic() + 60
+    while (len(node.shots) < 2 or node.counters.registrations < 2) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert node.counters.registrations >= 2, f"the node did not register both shots: {node.status()}"
+    start = time.monotonic()
+    frames = [(t, d) for t, _, d in recorded if t.endswith("camera/image")]
+    for i, (topic, data) in enumerate(frames):
+        time.sleep(max(0.0, start + i / fps - time.monotonic()))
+        publishers[topic].put(data)
+    for p in publishers.values():
+        p.undeclare()
+    return len(frames)
