@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
-
-from drillnav.registration.markers import MarkerSet, default_marker_set
-from drillnav.schemas.markers import write_marker_set
+from typing import TYPE_CHECKING
 
 from .cli import CliError
 from .outputs import check_output_path
+
+if TYPE_CHECKING:
+    from drillnav.registration.markers import MarkerSet
+
+# numpy, OpenCV and matplotlib are imported by the commands that use them: ``drillnav markers --help`` stays instant.
 
 __all__ = ["register", "parse_ids"]
 
@@ -35,6 +37,9 @@ def parse_ids(text: str, marker_set: MarkerSet) -> list[int]:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from drillnav.registration.markers import default_marker_set
+    from drillnav.schemas.markers import write_marker_set
+
     ms = default_marker_set()
     if args.ids:
         ms = ms.subset(parse_ids(args.ids, ms))
@@ -51,6 +56,8 @@ def _sheet(args: argparse.Namespace) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Circle, Rectangle
+
+    from drillnav.registration.markers import default_marker_set
 
     ms = default_marker_set()
     ids = parse_ids(args.ids, ms)
