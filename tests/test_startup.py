@@ -1,0 +1,119 @@
+"""Start-up: the CLI imports nothing heavy before a command needs it; the twin camera renders as it streams."""
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from drillnav.drivers.sim.devices import TwinDrillCamera
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.drivers.webcam import CameraUnavailable
+from drillnav.registration.transforms import make_transform
+
+HEAVY = ("cma", "matplotlib", "numba", "zenoh", "fastapi")
+
+PROBE = """
+import sys
+from drillnav.service.cli import main
+try:
+    main({argv!r})
+except SystemExit:
+    pass
+print("LOADED:" + ",".join(sorted(m for m in {heavy!r} if m in sys.modules)))
+"""
+
+
+def loaded_after(argv: list[str], heavy: tuple[str, ...]) -> list[str]:
+    """The modules of ``heavy`` that ``drillnav *argv`` has imported (run in a fresh interpreter)."""
+    out = subprocess.run([sys.executable, "-c", PROBE.format(argv=argv, heavy=heavy)], capture_output=True, text=True, timeout=60, check=True)
+    last = out.stdout.splitlines()[-1]
+    assert last.startswith("LOADED:"), out.stdout
+    return [m for m in last.removeprefix("LOADED:").split(",") if m]
+
+
+def test_drillnav_help_imports_no_heavy_library():
+    assert loaded_after(["--help"], HEAVY) == []
+
+
+@pytest.mark.parametrize("command", [["markers", "--help"], ["markers", "sheet", "--help"], ["sim", "scene", "--help"],
+                                     ["calibrate", "drill-axis", "--help"], ["listen", "--help"], ["replay", "--help"]])
+def test_command_help_imports_neither_heavy_libraries_nor_numpy(command):
+    assert loaded_after(command, HEAVY + ("numpy", "cv2", "scipy")) == []
+
+
+def test_the_probe_sees_a_heavy_import():
+    # The check above can fail: a command that does load zenoh is seen doing so.
+    assert "zenoh" in loaded_after(["listen", "drill-axis", "--connect", "tcp/127.0.0.1:1", "--timeout", "0.01", "--count", "1"], HEAVY)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(seed=3, n_markers=3, views="inlet", render=False)
+
+
+def rendered_up_front(scene, *, loop_frames: int, keyposes: int, seed: int) -> list[np.ndarray]:
+    """The loop as the twin camera rendered it before it streamed (all frames in its constructor)."""
+    rng = np.random.default_rng(seed)
+    keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
+    keys.append(keys[0])
+    times = np.linspace(0, 1, len(keys))
+    slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
+    t = np.linspace(0, 1, loop_frames, endpoint=False)
+    trans = np.stack([np.interp(t, times, [k[i, 3] for k in keys]) for i in range(3)], axis=1)
+    poses = [make_transform(r, p) for r, p in zip(slerp(t).as_matrix(), trans)]
+    return [scene.render_camera(rng, carm_from_drill=p) for p in poses]
+
+
+def test_streamed_frames_are_the_frames_rendered_up_front_and_the_second_pass_is_paced(scene):
+    expected = rendered_up_front(scene, loop_frames=3, keyposes=4, seed=5)
+    camera = TwinDrillCamera(scene=scene, fps=20.0, loop_frames=3, seed=5)
+    with camera as cam:
+        frames = [cam.read() for _ in range(6)]
+    for k, f in enumerate(frames):
+        np.testing.assert_array_equal(f.image, expected[k % 3])
+        np.testing.assert_array_equal(f.carm_from_drill, camera.poses[k % 3])
+    assert [f.frame_id for f in frames] == [1, 2, 3, 4, 5, 6]
+    assert all(frames[k + 3].image is frames[k].image for k in range(3))  # rendered once, served again
+    stamps = np.array([f.stamp_ns for f in frames[3:]], dtype=np.int64)
+    assert np.all(np.diff(stamps) >= 0.9 * 50e6)  # cached frames still come at the frame rate, 50 ms apart
+
+
+def test_the_first_frame_comes_after_one_render_not_the_whole_loop(scene):
+    camera = TwinDrillCamera(scene=scene, fps=30.0, loop_frames=90, seed=1)
+    assert camera.rendered_frames == 0  # nothing rendered before the camera is opened
+    t0 = time.monotonic()
+    with camera as cam:
+        first = cam.read()
+        waited_s = time.monotonic() - t0
+        rendered = cam.rendered_frames
+    t_closed = time.monotonic()
+    assert first.frame_id == 1 and first.image.shape == (scene.true_camera.height, scene.true_camera.width)
+    assert rendered < 90, f"all {rendered} frames were rendered before the first was served"
+    # Closing waits for at most the render in progress; reopening resumes where rendering stopped.
+    assert t_closed - t0 < 3 * waited_s + 5.0
+    kept = camera.rendered_frames
+    with camera as cam:
+        assert cam.read().frame_id == 2
+    assert camera.rendered_frames >= kept
+
+
+class BrokenLensScene:
+    """A scene whose renderer fails: the camera must say so instead of leaving the reader waiting."""
+
+    def __init__(self, scene) -> None:
+        self._scene = scene
+
+    def drill_pose_towards(self, rng, **kwargs):
+        return self._scene.drill_pose_towards(rng, **kwargs)
+
+    def render_camera(self, rng, **kwargs):
+        raise MemoryError("no room for the frame")
+
+
+def test_a_failing_render_is_a_camera_error_not_a_hang(scene):
+    with TwinDrillCamera(scene=BrokenLensScene(scene), loop_frames=5, seed=0) as cam:
+        with pytest.raises(CameraUnavailable, match="stopped rendering: MemoryError: no room for the frame"):
+            cam.read()
