@@ -26,7 +26,7 @@ from drillnav.drivers.webcam import CameraUnavailable
 from drillnav.registration.transforms import make_transform
 from drillnav.schemas.projection import write_projection
 
-__all__ = ["CameraFrame", "TwinDrillCamera", "TwinCArm"]
+__all__ = ["CameraFrame", "TwinDrillCamera", "TwinCArm", "freehand_loop"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,6 +35,18 @@ class CameraFrame:
     stamp_ns: int
     frame_id: int
     carm_from_drill: NDArray[np.float64] | None = None  # truth, twin only
+
+
+def freehand_loop(scene: Scene, rng: np.random.Generator, *, loop_frames: int, keyposes: int) -> list[NDArray[np.float64]]:
+    """``loop_frames`` poses ``carm_from_drill`` (4, 4) along a closed path through ``keyposes`` random drill poses
+    aimed at the corridor (translation interpolated linearly, rotation by slerp); draws the key poses from ``rng``."""
+    keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
+    keys.append(keys[0])
+    times = np.linspace(0, 1, len(keys))
+    slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
+    t = np.linspace(0, 1, loop_frames, endpoint=False)
+    trans = np.stack([np.interp(t, times, [k[i, 3] for k in keys]) for i in range(3)], axis=1)
+    return [make_transform(r, p) for r, p in zip(slerp(t).as_matrix(), trans)]
 
 
 class TwinDrillCamera:
@@ -51,14 +63,7 @@ class TwinDrillCamera:
         if loop_frames < 1:
             raise ValueError(f"loop_frames must be >= 1, got {loop_frames}")
         rng = np.random.default_rng(seed)
-        keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
-        keys.append(keys[0])
-        times = np.linspace(0, 1, len(keys))
-        slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
-        t = np.linspace(0, 1, loop_frames, endpoint=False)
-        trans = np.stack([np.interp(t, times, [k[i, 3] for k in keys]) for i in range(3)], axis=1)
-        rots = slerp(t).as_matrix()
-        self.poses = [make_transform(r, p) for r, p in zip(rots, trans)]
+        self.poses = freehand_loop(scene, rng, loop_frames=loop_frames, keyposes=keyposes)
         self.period_s = 1.0 / fps
         self._scene = scene
         # The same generator, drawn in loop order after the key poses, as when the loop was rendered up front.
