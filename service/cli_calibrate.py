@@ -31,19 +31,12 @@ def _drill_axis(args: argparse.Namespace) -> int:
     import numpy as np
 
     from drillnav.drivers.image_files import read_image
-    from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm
-    from drillnav.registration.errors import DegenerateInput
+    from drillnav.registration.drill_axis import find_jig_poses, fit_axis_cylinder, fit_axis_screw, jig_size_mm
     from drillnav.schemas.calibration import read_camera_calibration, write_drill_calibration
 
     out = check_output_path(args.out, suffixes=(".json",))
     camera = read_camera_calibration(args.camera)
-    poses = []
-    for p in args.frames:
-        pose = jig_pose(read_image(p), camera)
-        if pose is not None:
-            poses.append(pose)
-    if len(poses) < 3:
-        raise DegenerateInput(f"the jig board was found in only {len(poses)} of {len(args.frames)} frames; at least 3 are needed")
+    poses = find_jig_poses([(p, read_image(p)) for p in args.frames], camera)
     screw = fit_axis_screw(poses)
     s = jig_size_mm()
     corners = np.array([[0, 0, 0], [s, 0, 0], [s, s, 0], [0, s, 0], [s / 2, s / 2, 0]], dtype=float)
