@@ -109,3 +109,23 @@ def test_a_failing_render_is_a_camera_error_not_a_hang(scene):
     with TwinDrillCamera(scene=BrokenLensScene(scene), loop_frames=5, seed=0) as cam:
         with pytest.raises(CameraUnavailable, match="stopped rendering: MemoryError: no room for the frame"):
             cam.read()
+
+
+KERNEL_PROBE = """
+import numpy as np
+from drillnav.registration import distance_kernels as dk
+dk.sample_trilinear(np.zeros((4, 4, 4), np.float32), np.eye(4), np.zeros((2, 3)), outside=-1.0)
+print("HITS", sum(dk._sample.stats.cache_hits.values()), "MISSES", sum(dk._sample.stats.cache_misses.values()))
+"""
+
+
+def test_compiled_kernels_are_written_to_the_numba_cache_and_loaded_from_it(tmp_path):
+    """A second process loads the kernel compiled by the first (cache=True, NUMBA_CACHE_DIR writable) instead of compiling."""
+    import os
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    first, second = (subprocess.run([sys.executable, "-c", KERNEL_PROBE], capture_output=True, text=True, env=env, timeout=120, check=True).stdout.split()
+                     for _ in range(2))
+    assert first[-4:] == ["HITS", "0", "MISSES", "1"], first
+    assert second[-4:] == ["HITS", "1", "MISSES", "0"], second
+    assert list((tmp_path / "numba").rglob("distance_kernels._sample-*.nbi"))
