@@ -5,8 +5,10 @@ undistortion of every marker's footprint), so the camera renders one loop of a
 smooth freehand path as it streams: a render thread, started when the camera is
 opened, renders the loop's frames in order (so each frame's content, noise
 included, is what rendering the loop up front gave) and keeps them; ``read``
-serves them at the frame rate, stamped as each is served. The first pass
-streams as fast as frames render; from the second pass on, at the frame rate.
+serves them at the frame rate, stamped as each is served. Until the whole loop
+is rendered, a frame whose successor is not rendered yet is served again (the
+drill seems to pause between renders), so the stream runs at the frame rate
+from its first frame; from the second pass on, every frame is a new pose.
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ class TwinDrillCamera:
         self._render_stop = threading.Event()
         self._render_thread: threading.Thread | None = None
         self._n = 0
+        self._k = -1  # the loop frame served last
         self._next = 0.0
         self._open = False
 
@@ -115,23 +118,28 @@ class TwinDrillCamera:
                 self._rendered.notify_all()
 
     def read(self) -> CameraFrame:
-        """Block until the next frame is rendered and due, and return it, stamped now."""
+        """Block until the next frame is due and return it, stamped now: the loop's next frame once it is rendered,
+        the one served last again until then (the very first read waits for the first render)."""
         if not self._open:
             raise RuntimeError("the twin camera is not open")
-        k = self._n % len(self.poses)
         with self._rendered:
-            self._rendered.wait_for(lambda: len(self._frames) > k or self._render_error is not None or not self._open)
+            self._rendered.wait_for(lambda: self._frames or self._render_error is not None or not self._open)
             if self._render_error is not None:
                 raise CameraUnavailable(f"the twin camera stopped rendering: {type(self._render_error).__name__}: {self._render_error}")
             if not self._open:
                 raise RuntimeError("the twin camera was closed while a frame was awaited")
-            image = self._frames[k]
         self._next += self.period_s
         delay = self._next - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         else:
             self._next = time.monotonic()
+        with self._rendered:  # chosen when due, so a frame rendered meanwhile is served at once
+            following = (self._k + 1) % len(self.poses)
+            if following < len(self._frames):
+                self._k = following
+            k = self._k
+            image = self._frames[k]
         self._n += 1
         return CameraFrame(image=image, stamp_ns=time.time_ns(), frame_id=self._n, carm_from_drill=self.poses[k])
 
