@@ -13,6 +13,7 @@ from its first frame; from the second pass on, every frame is a new pose.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -29,6 +30,9 @@ from drillnav.registration.transforms import make_transform
 from drillnav.schemas.projection import write_projection
 
 __all__ = ["CameraFrame", "TwinDrillCamera", "TwinCArm", "freehand_loop"]
+
+
+RENDER_NICE = 10  # the camera's render thread's nice value (Linux)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -106,6 +110,11 @@ class TwinDrillCamera:
             self._render_thread = None
 
     def _render_loop(self) -> None:
+        try:
+            # The twin's rendering is scaffolding: the product's own work (the node, the CT worker at nice 10) goes first.
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RENDER_NICE)  # Linux: this thread alone
+        except (AttributeError, OSError):
+            pass  # no per-thread nice here: it renders on equal terms
         try:
             while not self._render_stop.is_set() and len(self._frames) < len(self.poses):
                 image = self._scene.render_camera(self._render_rng, carm_from_drill=self.poses[len(self._frames)])
