@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from .distance_kernels import first_crossings, sample_trilinear
 from .errors import DegenerateInput
 from .line import Line3D
 from .transforms import apply
@@ -69,6 +68,8 @@ class SurfaceDistance:
 
     def at(self, points_mm: ArrayLike) -> NDArray[np.float64]:
         """Signed distance at patient points (N, 3), trilinear; far outside (``OUTSIDE_MM``) beyond the grid."""
+        from .distance_kernels import sample_trilinear  # numba loads on first use, not on import
+
         return sample_trilinear(self.distance_mm, self.voxel_from_patient, np.asarray(points_mm, dtype=np.float64), outside=OUTSIDE_MM)
 
 
@@ -174,6 +175,8 @@ def radial_clearance(axis: Line3D, s_mm: NDArray[np.float64], surface: SurfaceDi
     w = np.cross(d, u)
     ang = np.linspace(0, 2 * np.pi, n_directions, endpoint=False)
     dirs = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * w  # (R, 3)
+    from .distance_kernels import first_crossings  # numba loads on first use, not on import
+
     clearance = first_crossings(surface.distance_mm, surface.voxel_from_patient, axis.at(s_mm), dirs, reach_mm=reach_mm, step_mm=step_mm, outside=OUTSIDE_MM)
     return np.where(on_axis_mm > 0, clearance, on_axis_mm)
 

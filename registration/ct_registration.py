@@ -19,7 +19,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
-import cma
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -225,6 +224,8 @@ def register_ct(
     widened by that much (:mod:`ct_prealign`), for starts that are off by
     more than CMA-ES's capture range (a few centimetres).
     """
+    import cma  # ~2 s of matplotlib and scipy.stats on import: only when a CT is registered
+
     if not shots:
         raise DegenerateInput("CT registration needs at least one fluoroscopy view")
     t_start = time.perf_counter()

@@ -12,6 +12,7 @@ Two methods on the jig board's poses ``camera_from_board`` (4, 4) per frame:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +24,10 @@ from .errors import DegenerateInput
 from .line import Line3D
 from .transforms import apply, invert
 
-__all__ = ["AxisFit", "fit_axis_screw", "fit_axis_cylinder"]
+__all__ = [
+    "AxisFit", "fit_axis_screw", "fit_axis_cylinder", "JigDetection", "JigNotFound", "detect_jig", "find_jig_poses", "jig_pose",
+    "jig_board", "jig_ids", "jig_size_mm", "jig_tag_corners_mm", "describe_missing_jig",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,41 +131,132 @@ def fit_axis_cylinder(poses: list[NDArray[np.float64]], board_points_mm: NDArray
     return AxisFit(axis=axis, residual_mm=float(np.sqrt(np.mean(sol.fun**2))), residual_deg=0.0, rotation_range_deg=float(angles.max()), method="cylinder-mlesac")
 
 
-# The jig: an ArUco grid board (ids outside the marker set) centred on the drill sleeve.
-JIG_MARKERS = (4, 4)
+# The jig: an ArUco grid board (ids outside the marker set) turning with the drill. Its printable sheet and geometry
+# file come from ``drillnav markers jig``; these constants are the design both are drawn from.
+JIG_MARKERS = (4, 4)  # tags across, down
 JIG_MARKER_MM = 12.0
 JIG_SEPARATION_MM = 3.0
 JIG_FIRST_ID = 100
+JIG_DICTIONARY = "DICT_6X6_250"
+MIN_JIG_TAGS = 4  # 16 board points spread over the board: a stable pose; fewer tags and the frame is not used
+MIN_JIG_POSES = 3  # the screw fit needs at least two relative rotations
+
+
+class JigNotFound(DegenerateInput):
+    """Too few frames show the jig board; the message says what the frames showed instead."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class JigDetection:
+    """The jig in one frame: its pose if enough of its tags were seen, and every tag id seen."""
+
+    camera_from_board: NDArray[np.float64] | None  # (4, 4), board frame of :func:`jig_board` (x right, y down, mm)
+    jig_ids: tuple[int, ...]  # the jig's tags seen
+    other_ids: tuple[int, ...]  # tags seen that are not the jig's (field markers, strays)
+    points: int  # board points (tag corners) used for the pose; 0 without a pose
+
+
+def jig_ids() -> tuple[int, ...]:
+    return tuple(range(JIG_FIRST_ID, JIG_FIRST_ID + JIG_MARKERS[0] * JIG_MARKERS[1]))
 
 
 def jig_board():
     import cv2
 
-    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
-    ids = np.arange(JIG_FIRST_ID, JIG_FIRST_ID + JIG_MARKERS[0] * JIG_MARKERS[1], dtype=np.int32)
-    return cv2.aruco.GridBoard(JIG_MARKERS, JIG_MARKER_MM, JIG_SEPARATION_MM, d, ids)
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, JIG_DICTIONARY))
+    return cv2.aruco.GridBoard(JIG_MARKERS, JIG_MARKER_MM, JIG_SEPARATION_MM, d, np.array(jig_ids(), dtype=np.int32))
 
 
 def jig_size_mm() -> float:
     return JIG_MARKERS[0] * JIG_MARKER_MM + (JIG_MARKERS[0] - 1) * JIG_SEPARATION_MM
 
 
-def jig_pose(image: NDArray[np.uint8], camera) -> NDArray[np.float64] | None:
-    """``camera_from_board`` (4, 4) of the jig in one frame (board frame: OpenCV GridBoard), or None."""
+def jig_tag_corners_mm() -> dict[int, NDArray[np.float64]]:
+    """Each jig tag's id -> its 4 corners (4, 3) in the board frame (mm; top-left, top-right, bottom-right, bottom-left)."""
+    board = jig_board()
+    return {int(i): np.asarray(c, dtype=np.float64).reshape(4, 3) for i, c in zip(board.getIds().ravel(), board.getObjPoints())}
+
+
+def detect_jig(image: NDArray[np.uint8], camera) -> JigDetection:
+    """Find the jig board in a grey or BGR frame and, from its own tags' corners only, its pose.
+
+    Tags that are not the jig's (the field markers, say) are listed but never
+    enter the pose; fewer than :data:`MIN_JIG_TAGS` of the jig's tags give no pose.
+    """
     import cv2
 
+    from .transforms import make_transform
+
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise ValueError(f"expected a grey (H, W) or BGR (H, W, 3) uint8 frame, got {image.dtype} {image.shape}")
     board = jig_board()
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    det = cv2.aruco.ArucoDetector(board.getDictionary(), params)
-    corners, ids, _ = det.detectMarkers(image)
-    if ids is None or len(ids) < 4:
-        return None
-    obj, img = board.matchImagePoints(corners, ids)
+    corners, ids, _ = cv2.aruco.ArucoDetector(board.getDictionary(), params).detectMarkers(image)
+    seen = [] if ids is None else [int(i) for i in ids.ravel()]
+    own = set(jig_ids())
+    keep = [k for k, i in enumerate(seen) if i in own]
+    found, others = tuple(sorted(seen[k] for k in keep)), tuple(sorted(set(seen) - own))
+    if len(set(found)) < MIN_JIG_TAGS:
+        return JigDetection(camera_from_board=None, jig_ids=found, other_ids=others, points=0)
+    table = jig_tag_corners_mm()
+    obj = np.concatenate([table[seen[k]] for k in keep]).astype(np.float64)
+    img = np.concatenate([np.asarray(corners[k], dtype=np.float64).reshape(4, 2) for k in keep])
     ok, rvec, tvec = cv2.solvePnP(obj, img, camera.camera_matrix, camera.distortion, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
-        return None
+        return JigDetection(camera_from_board=None, jig_ids=found, other_ids=others, points=0)
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.camera_matrix, camera.distortion, rvec, tvec)
-    from .transforms import make_transform
+    pose = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return JigDetection(camera_from_board=pose, jig_ids=found, other_ids=others, points=len(obj))
 
-    return make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+
+def jig_pose(image: NDArray[np.uint8], camera) -> NDArray[np.float64] | None:
+    """``camera_from_board`` (4, 4) of the jig in one frame, or None (see :func:`detect_jig`)."""
+    return detect_jig(image, camera).camera_from_board
+
+
+def _ids_text(ids) -> str:
+    return ", ".join(str(i) for i in sorted(ids))
+
+
+def describe_missing_jig(detections: Sequence[JigDetection], *, field_ids: Sequence[int] = ()) -> str:
+    """What frames without the jig showed instead, in one line: "saw tags 3, 7 (field markers), none of the jig's 16 tags"."""
+    misses = [d for d in detections if d.camera_from_board is None]
+    if not misses:
+        return "every frame showed it"
+    own, field = set(jig_ids()), set(field_ids)
+    seen_jig = sorted({i for d in misses for i in d.jig_ids})
+    others = sorted({i for d in misses for i in d.other_ids})
+    parts = []
+    if others:
+        in_field = [i for i in others if i in field]
+        strays = [i for i in others if i not in field]
+        if in_field:
+            parts.append(f"tags {_ids_text(in_field)} (field markers)")
+        if strays:
+            parts.append(f"tags {_ids_text(strays)} (neither field markers nor the jig's)")
+    jig = (f"only the jig's tags {_ids_text(seen_jig)} ({MIN_JIG_TAGS} or more of its {len(own)} tags are needed in one frame)" if seen_jig
+           else f"none of the jig's {len(own)} tags (ids {min(own)}-{max(own)})")
+    return ("saw " + ", ".join(parts) + ", " + jig) if parts else ("saw no ArUco tag at all" if not seen_jig else "saw " + jig)
+
+
+def find_jig_poses(frames: Sequence[tuple[str, NDArray[np.uint8]]], camera, *, min_poses: int = MIN_JIG_POSES,
+                   before_each: Callable[[int, str], None] | None = None) -> list[NDArray[np.float64]]:
+    """The jig's ``camera_from_board`` poses in the named frames that show it; :class:`JigNotFound` when fewer than
+    ``min_poses`` do, naming what the others showed. ``before_each(index, name)`` is called before each frame
+    (progress, cancellation)."""
+    from .markers import default_marker_set
+
+    detections = []
+    for i, (name, image) in enumerate(frames):
+        if before_each is not None:
+            before_each(i, name)
+        detections.append(detect_jig(image, camera))
+    poses = [d.camera_from_board for d in detections if d.camera_from_board is not None]
+    if len(poses) < min_poses:
+        seen = describe_missing_jig(detections, field_ids=[m.aruco_id for m in default_marker_set().markers])
+        raise JigNotFound(f"the jig board was found in only {len(poses)} of {len(frames)} frames (at least {min_poses} are needed): {seen}")
+    return poses

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cma
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -113,6 +112,8 @@ def refine_marker_pose(
         return -sum(gradient_information(f, render_marker_drr(design, t, v, roi)) for f, v, roi in zip(fixed, views, rois))
 
     initial = -cost(np.zeros(6))
+    import cma  # ~2 s of matplotlib and scipy.stats on import: only when a pose is refined
+
     es = cma.CMAEvolutionStrategy(np.zeros(6), 1.0, {"maxfevals": max_evaluations, "seed": seed + 1, "verbose": -9, "tolx": 1e-3})
     es.optimize(cost)
     best = np.asarray(es.result.xbest)

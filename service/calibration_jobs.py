@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.camera_calibration import BoardSpec, calibrate_camera, detect_board, parse_board
-from drillnav.registration.drill_axis import fit_axis_screw, jig_pose
+from drillnav.registration.drill_axis import MIN_JIG_POSES, find_jig_poses, fit_axis_screw
 from drillnav.registration.errors import DegenerateInput, DrillnavError
 from drillnav.schemas.calibration import read_camera_calibration, write_camera_calibration, write_drill_calibration
 
@@ -60,7 +60,7 @@ GrabFrame = Callable[[], tuple[int, NDArray[np.uint8]]]
 
 MAX_LIVE_SECONDS = 120.0
 MAX_LIVE_FPS = 30.0
-MIN_POSES = 3  # the screw fit needs at least two relative rotations
+MIN_POSES = MIN_JIG_POSES  # the screw fit needs at least two relative rotations
 
 
 class CalibrationJobError(DrillnavError):
@@ -126,7 +126,7 @@ class JobInfo:
     id: str
     kind: JobKind
     state: JobState
-    progress: float  # 0..1
+    progress: float  # 0..1 while it runs; 1 on success, 0 once it has ended failed or cancelled (no result)
     message: str
     source: str  # "upload" or "live"
     inputs: int  # uploaded images, or frames captured so far
@@ -459,8 +459,9 @@ class CalibrationJobs:
 
     def _finish(self, job: _Job, state: JobState, message: str) -> None:
         job.state, job.message, job.finished_ns = state, message, time.time_ns()
-        if state is JobState.SUCCEEDED:
-            job.progress = 1.0
+        # Progress is the way towards a result: whole for a result, none for a job that ended without one, so a
+        # failed job never reads as nearly done (its state and message say what happened).
+        job.progress = 1.0 if state is JobState.SUCCEEDED else 0.0
         job.images = []  # free the pixels; the result is on disk
 
     def _update(self, job: _Job, progress: float, message: str) -> None:
@@ -539,15 +540,10 @@ class CalibrationJobs:
     def _drill_axis(self, job: _Job, images: list[tuple[str, NDArray[np.uint8]]], lo: float) -> str:
         assert job.camera is not None
         n = len(images)
-        poses = []
-        for i, (name, im) in enumerate(images):
-            self._update(job, lo + (0.95 - lo) * i / n, f"finding the jig in {name} ({i + 1}/{n})")
-            pose = jig_pose(im, job.camera)
-            if pose is not None:
-                poses.append(pose)
+        # The same search as ``drillnav calibrate drill-axis``: a frame without the jig is named in the failure.
+        poses = find_jig_poses(images, job.camera, min_poses=MIN_POSES,
+                               before_each=lambda i, name: self._update(job, lo + (0.95 - lo) * i / n, f"finding the jig in {name} ({i + 1}/{n})"))
         self._update(job, 0.95, f"jig found in {len(poses)} of {n} frames; fitting the axis")
-        if len(poses) < MIN_POSES:
-            raise DegenerateInput(f"the jig board was found in only {len(poses)} of {n} frames; at least {MIN_POSES} are needed")
         screw = fit_axis_screw(poses)
         out = self._result_tmp(job)
         write_drill_calibration(out, screw.axis, method="screw (common rotation axis, refined)", residual_mm=screw.residual_mm, residual_deg=screw.residual_deg, label=job.label)

@@ -4,20 +4,18 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
-from drillnav.drivers.image_files import read_image
-from drillnav.registration.camera_calibration import calibrate_camera, parse_board
-from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm
-from drillnav.registration.errors import DegenerateInput
-from drillnav.schemas.calibration import read_camera_calibration, write_camera_calibration, write_drill_calibration
-
 from .outputs import check_output_path
+
+# OpenCV, scipy and the calibration math are imported by the commands that use them: ``--help`` stays instant.
 
 __all__ = ["register"]
 
 
 def _camera(args: argparse.Namespace) -> int:
+    from drillnav.drivers.image_files import read_image
+    from drillnav.registration.camera_calibration import calibrate_camera, parse_board
+    from drillnav.schemas.calibration import write_camera_calibration
+
     out = check_output_path(args.out, suffixes=(".json",))
     spec = parse_board(args.board)
     images = [read_image(p) for p in args.images]
@@ -30,15 +28,15 @@ def _camera(args: argparse.Namespace) -> int:
 
 
 def _drill_axis(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from drillnav.drivers.image_files import read_image
+    from drillnav.registration.drill_axis import find_jig_poses, fit_axis_cylinder, fit_axis_screw, jig_size_mm
+    from drillnav.schemas.calibration import read_camera_calibration, write_drill_calibration
+
     out = check_output_path(args.out, suffixes=(".json",))
     camera = read_camera_calibration(args.camera)
-    poses = []
-    for p in args.frames:
-        pose = jig_pose(read_image(p), camera)
-        if pose is not None:
-            poses.append(pose)
-    if len(poses) < 3:
-        raise DegenerateInput(f"the jig board was found in only {len(poses)} of {len(args.frames)} frames; at least 3 are needed")
+    poses = find_jig_poses([(p, read_image(p)) for p in args.frames], camera)
     screw = fit_axis_screw(poses)
     s = jig_size_mm()
     corners = np.array([[0, 0, 0], [s, 0, 0], [s, s, 0], [0, s, 0], [s / 2, s / 2, 0]], dtype=float)

@@ -5,24 +5,23 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-
-import cv2
-import numpy as np
-
-from drillnav.drivers.image_files import read_image
-from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.video_markers import detect_tags, tag_object_points
-from drillnav.schemas.calibration import read_camera_calibration
-from drillnav.schemas.geometry_json import transform_to_json
-from drillnav.registration.transforms import make_transform
+from typing import TYPE_CHECKING
 
 from .outputs import check_output_path
+
+if TYPE_CHECKING:
+    from drillnav.registration.camera import PinholeCamera
 
 __all__ = ["add_detect"]
 
 
 def read_any_camera(path: str) -> PinholeCamera:
     """camera.json, or an OpenCV YAML with camera_matrix and distortion_coefficients."""
+    import cv2
+
+    from drillnav.registration.camera import PinholeCamera
+    from drillnav.schemas.calibration import read_camera_calibration
+
     p = Path(path)
     if p.suffix.lower() in (".yml", ".yaml"):
         fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
@@ -36,6 +35,14 @@ def read_any_camera(path: str) -> PinholeCamera:
 
 
 def _detect(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from drillnav.drivers.image_files import read_image
+    from drillnav.registration.transforms import make_transform
+    from drillnav.registration.video_markers import detect_tags, tag_object_points
+    from drillnav.schemas.geometry_json import transform_to_json
+
     out = check_output_path(args.out, suffixes=(".json",))
     image = read_image(args.image)
     tags = detect_tags(image, dictionary=args.dictionary)

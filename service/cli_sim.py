@@ -6,28 +6,17 @@ import argparse
 import json
 import time
 from pathlib import Path
-
-import cv2
-from pydicom.uid import generate_uid
-
-import numpy as np
-
-from drillnav.drivers.ct_volume import read_ct
-from drillnav.drivers.sim import anatomy
-from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy, handed_copy
-from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
-from drillnav.drivers.sim.dicom_io import write_ct_series, write_xa
-from drillnav.drivers.sim.scene import PAPER_CARM, Scene, make_scene
-from drillnav.registration.markers import default_marker_set
-from drillnav.schemas.calibration import write_camera_calibration, write_drill_calibration
-from drillnav.schemas.markers import write_marker_set
-from drillnav.schemas.projection import write_projection
-from drillnav.schemas.scene_files import plan_to_json, truth_to_json
+from typing import TYPE_CHECKING
 
 from .cli import CliError
-from .cli_markers import parse_ids
-from .ct_mode import load_plan
 from .outputs import check_output_dir
+
+if TYPE_CHECKING:
+    from drillnav.drivers.sim import anatomy
+    from drillnav.drivers.sim.scene import Scene
+
+# The twin's libraries (scipy, pydicom, the renderers) are imported by the functions that use them, not on import:
+# ``drillnav sim --help`` stays instant.
 
 __all__ = ["register", "write_scene"]
 
@@ -40,6 +29,20 @@ def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None, pl
     in-plane voxels scaled by ``ct_voxel_mm`` / the truth's, at least 1.25x).
     ``plan_doc`` replaces the plan.json made from the scene's corridors.
     """
+    import cv2
+    import numpy as np
+    from pydicom.uid import generate_uid
+
+    from drillnav.drivers.sim import anatomy
+    from drillnav.drivers.sim.ct_anatomy import handed_copy
+    from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
+    from drillnav.drivers.sim.dicom_io import write_ct_series, write_xa
+    from drillnav.drivers.sim.scene import PAPER_CARM
+    from drillnav.schemas.calibration import write_camera_calibration, write_drill_calibration
+    from drillnav.schemas.markers import write_marker_set
+    from drillnav.schemas.projection import write_projection
+    from drillnav.schemas.scene_files import plan_to_json, truth_to_json
+
     t0 = time.perf_counter()
     patient = scene.voxel_anatomy
     if patient is not None:
@@ -72,6 +75,8 @@ def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None, pl
 
 
 def _point(text: str, option: str) -> tuple[float, float, float]:
+    import numpy as np
+
     try:
         p = tuple(float(v) for v in text.split(","))
     except ValueError:
@@ -84,6 +89,11 @@ def _point(text: str, option: str) -> tuple[float, float, float]:
 def _trajectory(args: argparse.Namespace) -> tuple[anatomy.Corridor, dict | None]:
     """The real-CT anatomy's trajectory: --entry/--target, or one from --plan (by --corridor name, else the first),
     with the plan to write (that trajectory, its acceptance volume's path made absolute)."""
+    from drillnav.drivers.sim import anatomy
+    from drillnav.schemas.scene_files import plan_to_json
+
+    from .ct_mode import load_plan
+
     if (args.entry is None) != (args.target is None):
         raise CliError("--entry and --target go together")
     if args.entry is not None:
@@ -104,6 +114,13 @@ def _trajectory(args: argparse.Namespace) -> tuple[anatomy.Corridor, dict | None
 
 
 def _scene(args: argparse.Namespace) -> int:
+    from drillnav.drivers.ct_volume import read_ct
+    from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy
+    from drillnav.drivers.sim.scene import make_scene
+    from drillnav.registration.markers import default_marker_set
+
+    from .cli_markers import parse_ids
+
     out = check_output_dir(args.out)
     ids = parse_ids(args.ids, default_marker_set()) if args.ids else None
     if args.ct_voxel_mm is not None and not 0.3 <= args.ct_voxel_mm <= 4.0:
@@ -133,7 +150,7 @@ def register(subparsers) -> None:
     s.add_argument("--markers", type=int, default=5, help="number of markers (1-7)")
     s.add_argument("--ids", help="explicit marker ids instead, e.g. 0-4")
     s.add_argument("--views", default="inlet,outlet", help="comma list of ap, lateral, inlet, outlet, lao30, rao30 or PRIMARY:SECONDARY degrees")
-    s.add_argument("--corridor", help="target corridor: " + ", ".join(c.name for c in anatomy.CORRIDORS) + " (default AIIS-PSIS); with --anatomy --plan, a trajectory's name in the plan")
+    s.add_argument("--corridor", help="target corridor of the twin's pelvis, e.g. AIIS-PSIS (the default; an unknown name lists them); with --anatomy --plan, a trajectory's name in the plan")
     s.add_argument("--ct", action="store_true", help="also write the preoperative CT as a DICOM series in ct/ (1 mm voxels unless --ct-voxel-mm)")
     s.add_argument("--ct-voxel-mm", type=float, help="CT voxel size in mm (implies --ct)")
     s.add_argument("--anatomy", metavar="CT", help="a real CT (DICOM folder or .nii/.nii.gz) as the patient instead of the analytic pelvis; ct/ gets a resampled, noisier copy")

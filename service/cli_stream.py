@@ -7,15 +7,17 @@ import json
 import threading
 import time
 
-from drillnav.schemas import messages as msg
-from drillnav.schemas.topics import ALIASES, TOPICS, Encoding, key
-
-from .bus import open_session
+# zenoh, the message codecs and the MCAP reader are imported by the commands: ``--help`` stays instant.
 
 __all__ = ["register"]
 
 
 def _listen(args: argparse.Namespace) -> int:
+    from drillnav.schemas import messages as msg
+    from drillnav.schemas.topics import ALIASES, TOPICS, Encoding, key
+
+    from .bus import open_session
+
     name = ALIASES.get(args.topic, args.topic)
     if name not in TOPICS or "*" in TOPICS[name].suffix:
         raise ValueError(f"unknown topic '{args.topic}': one of {', '.join(sorted(ALIASES))}")
@@ -53,6 +55,7 @@ def register(subparsers) -> None:
 def _replay(args: argparse.Namespace) -> int:
     from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
     from drillnav.schemas.markers import read_marker_set
+    from .bus import open_session
 
     from .replay import RecordingReader, replay, replay_node
 

@@ -11,13 +11,16 @@ from scipy.spatial.transform import Rotation
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA as AXIS
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.camera_calibration import calibrate_camera, detect_board, parse_board
-from drillnav.registration.drill_axis import fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm
+from drillnav.registration.drill_axis import (
+    JigNotFound, detect_jig, find_jig_poses, fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm, jig_tag_corners_mm,
+)
 from drillnav.registration.errors import DegenerateInput
-from drillnav.registration.transforms import make_transform
+from drillnav.registration.transforms import apply, make_transform
 from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
 from drillnav.service.cli import main
 
 from twin_images import board_views as shared_board_views  # noqa: E402
+from twin_images import field_marker_frame  # noqa: E402
 from twin_images import jig_frames as shared_jig_frames  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -149,3 +152,38 @@ def test_no_board_found_and_one_view(tmp_path, capsys):
     assert "was not found in any of the 3 views" in capsys.readouterr().err
     assert main(["calibrate", "camera", str(blank), "--board", "checkerboard:9x6:25mm", "--out", str(tmp_path / "c.json")]) == 1
     assert "at least 3 views" in capsys.readouterr().err
+
+
+def test_the_jig_pose_comes_from_the_jig_s_own_board_points():
+    frame = jig_frames(1, span=0.0)[0]
+    det = detect_jig(frame, TRUE)
+    assert det.jig_ids == tuple(range(100, 116)) and det.other_ids == () and det.points == 64
+    # Covering all but a few of its tags: the jig is named as seen, but too little of it for a pose.
+    covered = frame.copy()
+    for tag_id, corners_mm in jig_tag_corners_mm().items():
+        if tag_id not in (100, 101, 102):
+            px = TRUE.project(apply(det.camera_from_board, corners_mm))
+            cv2.fillConvexPoly(covered, np.round(px).astype(np.int32), 200)
+    part = detect_jig(covered, TRUE)
+    assert part.camera_from_board is None and part.jig_ids == (100, 101, 102) and part.points == 0
+    with pytest.raises(JigNotFound, match=r"saw only the jig's tags 100, 101, 102 \(4 or more of its 16 tags are needed in one frame\)"):
+        find_jig_poses([("covered.png", covered)] * 3, TRUE)
+
+
+def test_field_markers_instead_of_the_jig_is_one_line_naming_them(tmp_path, capsys):
+    from drillnav.schemas.calibration import write_camera_calibration
+
+    cam = tmp_path / "camera.json"
+    write_camera_calibration(cam, TRUE, rms_px=0.2, per_view_errors_px=[], label="twin")
+    frame = field_marker_frame(TRUE)  # four field markers: before, OpenCV's solvePnP asserted on them
+    assert detect_jig(frame, TRUE).other_ids == (3, 7, 12, 20)
+    paths = []
+    for i, f in enumerate([frame] * 3 + jig_frames(2)):
+        paths.append(tmp_path / f"f{i}.png")
+        cv2.imwrite(str(paths[-1]), f)
+    assert main(["calibrate", "drill-axis", *map(str, paths), "--camera", str(cam), "--out", str(tmp_path / "drill.json")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and "OpenCV" not in err, err
+    assert ("drillnav calibrate: error: the jig board was found in only 2 of 5 frames (at least 3 are needed): "
+            "saw tags 3, 7, 12, 20 (field markers), none of the jig's 16 tags (ids 100-115)") in err
+    assert not (tmp_path / "drill.json").exists()

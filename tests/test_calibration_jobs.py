@@ -20,6 +20,7 @@ from drillnav.service.api import create_app
 from drillnav.service.calibration_jobs import CalibrationJobs, JobKind, JobNotSucceeded
 
 from twin_images import board_views as shared_board_views  # noqa: E402
+from twin_images import field_marker_frame  # noqa: E402
 from twin_images import jig_frames as shared_jig_frames  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -283,12 +284,27 @@ def test_unknown_and_failed_jobs(api):
     r = submit(client, [blank, blank, blank], kind="camera", board=BOARD)
     job = wait_finished(client, r.json()["id"])
     assert job["state"] == "failed" and "not found in any of the 3 views" in job["message"]
+    assert job["progress"] == 0.0  # ended without a result: not left at the 0.95 it had reached
     r = client.post(f"/calibration/jobs/{job['id']}/install", headers=AUTH)
     assert r.status_code == 409 and "failed" in r.json()["detail"]
     assert client.get(f"/calibration/jobs/{job['id']}/result").status_code == 409
     assert installs == [] and not jobs.active_paths[JobKind.CAMERA].exists()
     with pytest.raises(JobNotSucceeded):
         jobs.install(job["id"])
+
+
+def test_live_drill_axis_job_over_field_markers_fails_in_one_line_naming_them(api):
+    client, jobs, installs, camera = api
+    write_camera_calibration(jobs.active_paths[JobKind.CAMERA], TRUE, rms_px=0.1, per_view_errors_px=[], label="truth")
+    camera.frames = [field_marker_frame(TRUE)]  # the camera sees the field markers, not the jig
+    r = submit(client, [], kind="drill-axis", live_seconds="0.5", live_fps="10")
+    assert r.status_code == 202, r.text
+    job = wait_finished(client, r.json()["id"])
+    assert job["state"] == "failed" and job["progress"] == 0.0, job
+    assert "\n" not in job["message"] and "OpenCV" not in job["message"] and "internal error" not in job["message"]
+    assert job["message"].startswith(f"the jig board was found in only 0 of {job['inputs']} frames (at least 3 are needed): ")
+    assert job["message"].endswith("saw tags 3, 7, 12, 20 (field markers), none of the jig's 16 tags (ids 100-115)")
+    assert client.post(f"/calibration/jobs/{job['id']}/install", headers=AUTH).status_code == 409 and installs == []
 
 
 def test_routes_only_with_calibration_jobs():

@@ -1,6 +1,7 @@
 """Twin calibration images shared by the tests: checkerboard views and the drill-axis jig turning about an axis.
 
-Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera.
+Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera; a frame of
+field markers where the jig should be, through the twin's marker renderer.
 """
 
 import cv2
@@ -51,3 +52,16 @@ def jig_frames(camera: PinholeCamera, axis: Line3D, n: int = 8, span_deg: float 
         frames.append(render_plane(camera=camera, camera_from_plane=make_transform(r, c - r @ c) @ base @ board_from_print, texture=tex,
                                    size_mm=(s + 2 * pad_mm, s + 2 * pad_mm), rng=rng))
     return frames
+
+
+def field_marker_frame(camera: PinholeCamera, ids=(3, 7, 12, 20), *, distance_mm: float = 300.0, seed: int = 0) -> np.ndarray:
+    """The field markers ``ids`` (not the jig) lying side by side ``distance_mm`` in front of the camera, seen a little
+    obliquely, through the twin's own marker renderer."""
+    from drillnav.drivers.sim.camera import render_markers
+    from drillnav.registration.markers import default_marker_set
+
+    markers = {i: default_marker_set().by_id(i) for i in ids}
+    tilt = Rotation.from_euler("x", 160, degrees=True).as_matrix()  # facing the camera, 20 deg off
+    spacing = 60.0
+    poses = {i: make_transform(tilt, [(k - (len(ids) - 1) / 2) * spacing, 0.0, distance_mm]) for k, i in enumerate(ids)}
+    return render_markers(camera=camera, camera_from_marker=poses, markers=markers, rng=np.random.default_rng(seed), glare=False)

@@ -1,12 +1,20 @@
 """The digital twin as devices: a drill camera moving freehand at 30 frames/s and a C-arm that shoots on request.
 
-Rendering a frame through the true lens costs ~50 ms on one core, so the
-camera pre-renders one loop of a smooth freehand path at start-up and then
-serves it at the frame rate with capture stamps taken as each frame is served.
+Rendering a frame through the true lens costs ~0.3-0.6 s of CPU (the ray
+undistortion of every marker's footprint), so the camera renders one loop of a
+smooth freehand path as it streams: a render thread, started when the camera is
+opened, renders the loop's frames in order (so each frame's content, noise
+included, is what rendering the loop up front gave) and keeps them; ``read``
+serves them at the frame rate, stamped as each is served. Until the whole loop
+is rendered, a frame whose successor is not rendered yet is served again (the
+drill seems to pause between renders), so the stream runs at the frame rate
+from its first frame; from the second pass on, every frame is a new pose.
 """
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,10 +25,14 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drillnav.drivers.sim.dicom_io import write_xa
 from drillnav.drivers.sim.scene import PAPER_CARM, Scene, render_fluoro
+from drillnav.drivers.webcam import CameraUnavailable
 from drillnav.registration.transforms import make_transform
 from drillnav.schemas.projection import write_projection
 
-__all__ = ["CameraFrame", "TwinDrillCamera", "TwinCArm"]
+__all__ = ["CameraFrame", "TwinDrillCamera", "TwinCArm", "freehand_loop"]
+
+
+RENDER_NICE = 10  # the camera's render thread's nice value (Linux)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -31,46 +43,114 @@ class CameraFrame:
     carm_from_drill: NDArray[np.float64] | None = None  # truth, twin only
 
 
+def freehand_loop(scene: Scene, rng: np.random.Generator, *, loop_frames: int, keyposes: int) -> list[NDArray[np.float64]]:
+    """``loop_frames`` poses ``carm_from_drill`` (4, 4) along a closed path through ``keyposes`` random drill poses
+    aimed at the corridor (translation interpolated linearly, rotation by slerp); draws the key poses from ``rng``."""
+    keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
+    keys.append(keys[0])
+    times = np.linspace(0, 1, len(keys))
+    slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
+    t = np.linspace(0, 1, loop_frames, endpoint=False)
+    trans = np.stack([np.interp(t, times, [k[i, 3] for k in keys]) for i in range(3)], axis=1)
+    return [make_transform(r, p) for r, p in zip(slerp(t).as_matrix(), trans)]
+
+
 class TwinDrillCamera:
-    """Context manager yielding frames at ``fps`` along a looping freehand path towards the corridor."""
+    """Context manager yielding frames at ``fps`` along a looping freehand path towards the corridor.
+
+    ``loop_frames`` poses along a closed path through ``keyposes`` random drill
+    poses; frame ``k`` of the loop is rendered once, by the camera's own render
+    thread, and served again on every later pass.
+    """
 
     def __init__(self, *, scene: Scene, fps: float = 30.0, loop_frames: int = 90, keyposes: int = 4, seed: int = 0) -> None:
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        if loop_frames < 1:
+            raise ValueError(f"loop_frames must be >= 1, got {loop_frames}")
         rng = np.random.default_rng(seed)
-        keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
-        keys.append(keys[0])
-        times = np.linspace(0, 1, len(keys))
-        slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
-        t = np.linspace(0, 1, loop_frames, endpoint=False)
-        trans = np.stack([np.interp(t, times, [k[i, 3] for k in keys]) for i in range(3)], axis=1)
-        rots = slerp(t).as_matrix()
-        self.poses = [make_transform(r, p) for r, p in zip(rots, trans)]
-        self.frames = [scene.render_camera(rng, carm_from_drill=p) for p in self.poses]
+        self.poses = freehand_loop(scene, rng, loop_frames=loop_frames, keyposes=keyposes)
         self.period_s = 1.0 / fps
+        self._scene = scene
+        # The same generator, drawn in loop order after the key poses, as when the loop was rendered up front.
+        self._render_rng = rng
+        self._frames: list[NDArray[np.uint8]] = []
+        self._rendered = threading.Condition()
+        self._render_error: BaseException | None = None
+        self._render_stop = threading.Event()
+        self._render_thread: threading.Thread | None = None
         self._n = 0
+        self._k = -1  # the loop frame served last
         self._next = 0.0
         self._open = False
+
+    @property
+    def rendered_frames(self) -> int:
+        """Frames of the loop rendered so far (``len(poses)`` once the loop is complete)."""
+        with self._rendered:
+            return len(self._frames)
 
     def __enter__(self) -> "TwinDrillCamera":
         self._open = True
         self._next = time.monotonic()
+        if len(self._frames) < len(self.poses) and self._render_error is None:
+            self._render_stop.clear()
+            self._render_thread = threading.Thread(target=self._render_loop, name="twin-camera-render", daemon=True)
+            self._render_thread.start()
         return self
 
     def __exit__(self, *exc) -> None:
         self._open = False
+        self._render_stop.set()
+        with self._rendered:
+            self._rendered.notify_all()
+        if self._render_thread is not None:
+            # A render in progress finishes (its frame is kept); the next open resumes after it.
+            self._render_thread.join()
+            self._render_thread = None
+
+    def _render_loop(self) -> None:
+        try:
+            # The twin's rendering is scaffolding: the product's own work (the node, the CT worker at nice 10) goes first.
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RENDER_NICE)  # Linux: this thread alone
+        except (AttributeError, OSError):
+            pass  # no per-thread nice here: it renders on equal terms
+        try:
+            while not self._render_stop.is_set() and len(self._frames) < len(self.poses):
+                image = self._scene.render_camera(self._render_rng, carm_from_drill=self.poses[len(self._frames)])
+                with self._rendered:
+                    self._frames.append(image)
+                    self._rendered.notify_all()
+        except BaseException as exc:  # a reader must not wait for a frame that will never come
+            with self._rendered:
+                self._render_error = exc
+                self._rendered.notify_all()
 
     def read(self) -> CameraFrame:
-        """Block until the next frame is due and return it, stamped now."""
+        """Block until the next frame is due and return it, stamped now: the loop's next frame once it is rendered,
+        the one served last again until then (the very first read waits for the first render)."""
         if not self._open:
             raise RuntimeError("the twin camera is not open")
+        with self._rendered:
+            self._rendered.wait_for(lambda: self._frames or self._render_error is not None or not self._open)
+            if self._render_error is not None:
+                raise CameraUnavailable(f"the twin camera stopped rendering: {type(self._render_error).__name__}: {self._render_error}")
+            if not self._open:
+                raise RuntimeError("the twin camera was closed while a frame was awaited")
         self._next += self.period_s
         delay = self._next - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         else:
             self._next = time.monotonic()
-        k = self._n % len(self.frames)
+        with self._rendered:  # chosen when due, so a frame rendered meanwhile is served at once
+            following = (self._k + 1) % len(self.poses)
+            if following < len(self._frames):
+                self._k = following
+            k = self._k
+            image = self._frames[k]
         self._n += 1
-        return CameraFrame(image=self.frames[k], stamp_ns=time.time_ns(), frame_id=self._n, carm_from_drill=self.poses[k])
+        return CameraFrame(image=image, stamp_ns=time.time_ns(), frame_id=self._n, carm_from_drill=self.poses[k])
 
 
 class TwinCArm:

@@ -1,0 +1,143 @@
+"""Start-up: seconds from ``drillnav serve --twin`` to the first published drill axis, and CLI import times.
+
+The daemon runs as a subprocess (config in a temp dir, ports the OS hands out);
+a zenoh subscriber of our own times the first message on the axis topic. Two
+starts: numba's cache empty (cold, ``NUMBA_CACHE_DIR`` a new folder) and then
+filled by the first (warm). The CLI figures are the wall time of
+``drillnav <command> --help`` and its import time (``python -X importtime``,
+the sum over every module imported).
+
+Issue bar (issue 13): first axis at most 10 s after ``drillnav serve --twin`` on
+an idle 2-core machine; the CLI well under a second. The reference (Vagdargi et
+al. 2021) gives no start-up figure.
+Run: .venv/bin/python benchmarks/startup.py [--starts 2] [--ct] [--timeout 180]
+"""
+
+import argparse
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _report import figure, report  # noqa: E402
+
+from drillnav.schemas.topics import key  # noqa: E402
+from drillnav.service.bus import open_session  # noqa: E402
+
+BAR_FIRST_AXIS_S = 10.0
+CLI_COMMANDS = ([], ["markers"], ["sim"], ["register"], ["calibrate"], ["serve"], ["listen"], ["replay"])
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def drillnav_command() -> list[str]:
+    """The ``drillnav`` console script beside this interpreter, else the module."""
+    script = Path(sys.executable).with_name("drillnav")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "drillnav.service.cli"]
+
+
+def cpu_s(pid: int) -> float:
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def first_axis(folder: Path, numba_cache: Path, *, ct: bool, timeout_s: float) -> dict:
+    """One start of the twin daemon: seconds to the first axis, CPU spent by then, and its progress lines, timed."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    api_port, dicom_port = free_port(), free_port()
+    conf = folder / "drillnav.toml"
+    conf.write_text(
+        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "startup-bench"\n'
+        f'[dicom]\nwatch_folder = "{folder / "in"}"\nscp_port = {dicom_port}\n[recording]\nfolder = "{folder / "rec"}"\n'
+        f'[calibration]\nfolder = "{folder / "cal"}"\n' + ("[twin_scene]\nct_voxel_mm = 2.0\n" if ct else ""))
+    got = threading.Event()
+    lines: list[tuple[float, str]] = []
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(numba_cache), "PYTHONUNBUFFERED": "1"}
+    with open_session(connect=[ep]) as session:
+        session.declare_subscriber(key("drillnav", "axis_carm"), lambda _sample: got.set())
+        t0 = time.monotonic()
+        proc = subprocess.Popen([*drillnav_command(), "serve", "--twin", "--config", str(conf)], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, env=env, cwd=folder)
+        try:
+            def read_lines() -> None:
+                for line in proc.stdout:
+                    lines.append((time.monotonic() - t0, line.rstrip()))
+
+            reader = threading.Thread(target=read_lines, daemon=True)
+            reader.start()
+            while not got.wait(0.05):
+                if proc.poll() is not None:
+                    raise RuntimeError(f"the daemon exited ({proc.returncode}) before the first axis: {[l for _, l in lines][-5:]}")
+                if time.monotonic() - t0 > timeout_s:
+                    raise RuntimeError(f"no axis within {timeout_s:.0f} s: {[l for _, l in lines][-5:]}")
+            seconds = time.monotonic() - t0
+            cpu = cpu_s(proc.pid)
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    return {"seconds": seconds, "cpu_s": cpu, "lines": [(t, l) for t, l in lines if t <= seconds]}
+
+
+def cli_times(argv: list[str]) -> tuple[float, float]:
+    """(wall s of ``drillnav *argv --help``, its import time in s from ``-X importtime``)."""
+    t0 = time.monotonic()
+    subprocess.run([*drillnav_command(), *argv, "--help"], capture_output=True, check=True, timeout=120)
+    wall = time.monotonic() - t0
+    probe = f"from drillnav.service.cli import main\ntry:\n    main({[*argv, '--help']!r})\nexcept SystemExit:\n    pass\n"
+    out = subprocess.run([sys.executable, "-X", "importtime", "-c", probe], capture_output=True, text=True, check=True, timeout=120)
+    us = sum(int(m.group(1)) for m in re.finditer(r"^import time:\s+(\d+) \|", out.stderr, re.M))
+    return wall, us / 1e6
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--starts", type=int, default=2, help="daemon starts: the first with an empty numba cache, the rest warm")
+    ap.add_argument("--ct", action="store_true", help="with the twin's live video-CT mode (2 mm CT; numba's DRR kernel in use)")
+    ap.add_argument("--timeout", type=float, default=180.0, help="give up on a start after this many seconds")
+    args = ap.parse_args()
+    load = os.getloadavg()[0]
+    figures = []
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        numba_cache = d / "numba-cache"
+        runs = []
+        for n in range(args.starts):
+            folder = d / f"start{n}"
+            folder.mkdir()
+            run = first_axis(folder, numba_cache, ct=args.ct, timeout_s=args.timeout)
+            shutil.rmtree(folder, ignore_errors=True)
+            label = "cold" if n == 0 else "warm"
+            print(f"start {n + 1} ({label} numba cache): first axis after {run['seconds']:.2f} s, daemon CPU {run['cpu_s']:.2f} s")
+            for t, line in run["lines"]:
+                print(f"  {t:6.2f} s  {line}")
+            runs.append(run)
+            figures.append(figure(f"first axis, {label} numba cache" + (f" (start {n + 1})" if n > 1 else ""), run["seconds"], "s", BAR_FIRST_AXIS_S))
+            figures.append(figure(f"daemon CPU to first axis, {label}" + (f" (start {n + 1})" if n > 1 else ""), run["cpu_s"], "s", None))
+    for argv in CLI_COMMANDS:
+        wall, imports = cli_times(argv)
+        name = " ".join(["drillnav", *argv, "--help"])
+        figures.append(figure(f"{name} wall", wall, "s", 1.0))
+        figures.append(figure(f"{name} imports", imports, "s", 1.0))
+    report("startup", figures, load_before=load, live_ct=args.ct,
+           note="reference column: the issue's bars (10 s to the first axis on an idle 2-core machine; CLI under 1 s); "
+                "the reference paper gives no start-up figure. Load average before the run in load_before.")
+
+
+if __name__ == "__main__":
+    main()
