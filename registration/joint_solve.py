@@ -98,6 +98,7 @@ def joint_solve(
     focal_rel_sigma: float = 0.003,
     principal_sigma_px: float = 1.5,
     outlier_chi: float = 4.0,
+    bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
@@ -106,7 +107,8 @@ def joint_solve(
     corners_px : {marker id: (4, 2) tag corners in the camera image, OpenCV order}.
     carm_from_marker0, carm_from_drill0 : the starting poses (each marker's on the right mirror side).
     Markers in both ``observations`` and ``corners_px`` are used; a marker whose RMS normalised residual
-    exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain.
+    exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain;
+    before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -114,9 +116,20 @@ def joint_solve(
     rejected: list[int] = []
     drill0 = np.asarray(carm_from_drill0, dtype=np.float64)
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
+    observations = {i: tuple(observations[i]) for i in ids}
+    trimmed = False
     while True:
         sol = _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,
                      fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px)
+        if not trimmed:
+            # A BB merged with the K-wire or a neighbour's BB, or matched to the wrong design BB, spoils
+            # its marker; drop such single BBs (once) before judging whole markers.
+            trimmed = True
+            kept = {i: _trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px) for i in ids}
+            if sum(len(o[1]) for i in ids for o in kept[i]) < sum(len(o[1]) for i in ids for o in observations[i]):
+                observations = kept
+                drill0, markers0 = sol.carm_from_drill, {i: sol.carm_from_marker[i] for i in ids}
+                continue
         chi = sol.marker_chi
         worst = max(ids, key=lambda i: chi[i])
         others = [chi[i] for i in ids if i != worst]
@@ -127,6 +140,18 @@ def joint_solve(
         drill0 = sol.carm_from_drill
         markers0 = {i: sol.carm_from_marker[i] for i in ids}
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
+
+
+def _trim(observations, carm_from_marker, max_px: float) -> tuple:
+    """The observations without BBs farther than ``max_px`` from their projection (at least 3 kept per view)."""
+    out = []
+    for view, obj, img in observations:
+        err = np.linalg.norm(view.project(apply(carm_from_marker, obj)) - img, axis=1)
+        keep = err <= max_px
+        if keep.sum() < 3:
+            keep = err <= np.sort(err)[min(2, len(err) - 1)]
+        out.append((view, np.asarray(obj)[keep], np.asarray(img)[keep]))
+    return tuple(out)
 
 
 def _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,

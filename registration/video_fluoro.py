@@ -94,29 +94,33 @@ def register_video_to_fluoro(
     ``joint``: finish with the joint solve of every marker pose and the drill pose when the marker poses carry
     their BB observations (the default); False keeps the former Horn + corner PnP pipeline.
     """
-    poses = {p.marker_id: p for p in marker_poses if p.converged}
+    every = {p.marker_id: p for p in marker_poses}
+    poses = {i: p for i, p in every.items() if p.converged}
     vids = video.by_id()
     common = sorted(set(poses) & set(vids))
-    if len(common) < min_markers:
+    # The joint solve also takes markers whose fluoroscopy-only pose did not converge (edge-on, few BBs, one
+    # view): the camera fixes their orientation, so their BBs still count.
+    joinable = sorted(i for i in set(every) & set(vids) if every[i].observations) if joint else []
+    if len(common) < min_markers and len(joinable) < min_markers:
         raise MarkersNotFound(
-            f"only {len(common)} marker(s) seen by both the camera and fluoroscopy "
+            f"only {max(len(common), len(joinable))} marker(s) seen by both the camera and fluoroscopy "
             f"(camera: {sorted(vids)}, fluoroscopy: {sorted(poses)}); at least {min_markers} are needed"
         )
-    used = list(common)
+    used = list(common if len(common) >= min_markers else joinable)
     rejected: list[int] = []
     while True:
-        fit = _horn(used, vids, poses)
+        fit = _horn(used, vids, every)
         worst = int(np.argmax(fit.residuals_mm))
         if fit.residuals_mm[worst] <= outlier_mm or len(used) <= min_markers:
             break
         # Leave-one-out: does the fit without the worst marker explain the others well?
         rest = [i for k, i in enumerate(used) if k != worst]
-        if _horn(rest, vids, poses).fre_mm < fit.fre_mm:
+        if _horn(rest, vids, every).fre_mm < fit.fre_mm:
             rejected.append(used.pop(worst))
         else:
             break
     carm_from_drill_horn = fit.target_from_source
-    carm_from_marker = {i: _camera_side(poses[i], carm_from_drill_horn @ vids[i].camera_from_tag) for i in common}
+    carm_from_marker = {i: _camera_side(every[i], carm_from_drill_horn @ vids[i].camera_from_tag) for i in set(used) | set(common) | set(joinable)}
     # Joint PnP on all tag corners of the markers kept.
     obj, img = [], []
     for i in used:
@@ -132,10 +136,15 @@ def register_video_to_fluoro(
     proj, _ = cv2.projectPoints(obj_a, rvec, tvec, camera.camera_matrix, camera.distortion)
     corner_rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_a) ** 2, axis=1))))
     extra: dict = {}
-    if joint and all(poses[i].observations for i in used):
+    if len(joinable) >= min_markers:
+        for i in joinable:
+            if not every[i].converged:  # orientation from the camera, position from fluoroscopy
+                start = carm_from_drill @ vids[i].camera_from_tag
+                start[:3, 3] = every[i].position_carm_mm
+                carm_from_marker[i] = start
         sol = joint_solve(
-            observations={i: poses[i].observations for i in used},
-            corners_px={i: vids[i].corners_px for i in used},
+            observations={i: every[i].observations for i in joinable},
+            corners_px={i: vids[i].corners_px for i in joinable},
             marker_set=marker_set,
             camera=camera,
             carm_from_drill0=carm_from_drill,
@@ -143,10 +152,10 @@ def register_video_to_fluoro(
             min_markers=min_markers,
         )
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
-        used = list(sol.used_ids)
-        rejected += list(sol.rejected_ids)
+        used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
         extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint")
+    common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
     return DrillRegistration(
