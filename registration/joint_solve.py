@@ -50,7 +50,7 @@ class JointSolution:
     carm_from_marker : {marker id: (4, 4)} of the markers used.
     covariance_drill : (6, 6) covariance of the drill perturbation (rotation vector rad, translation mm) about
         ``pivot_carm_mm`` (see :func:`perturb_about`), marginal over the markers and intrinsics, scaled by the
-        reduced chi-square when above 1.
+        fit's reduced chi-square (the noise models give its shape, the residuals its size).
     marker_chi : {marker id: RMS normalised residual} (about 1 for a marker that fits its noise model).
     """
 
@@ -117,28 +117,31 @@ def joint_solve(
     drill0 = np.asarray(carm_from_drill0, dtype=np.float64)
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
     observations = {i: tuple(observations[i]) for i in ids}
+    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px)
     trimmed = False
     while True:
-        sol = _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,
-                     fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px)
+        # Judged on a robust fit (soft L1 beyond 3 sigma), so that one bad marker cannot drag the others
+        # into disagreeing with their own data and hide among them.
+        sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="soft_l1")
+        drill0, markers0 = sol.carm_from_drill, {i: sol.carm_from_marker[i] for i in ids}
+        chi = sol.marker_chi
+        worst = max(ids, key=lambda i: chi[i])
+        others = [chi[i] for i in ids if i != worst]
+        if len(ids) > min_markers and chi[worst] > outlier_chi and chi[worst] > 3.0 * float(np.median(others)):
+            rejected.append(worst)
+            ids = [i for i in ids if i != worst]
+            continue
         if not trimmed:
             # A BB merged with the K-wire or a neighbour's BB, or matched to the wrong design BB, spoils
-            # its marker; drop such single BBs (once) before judging whole markers.
+            # its marker; drop such single BBs (once).
             trimmed = True
             kept = {i: _trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px) for i in ids}
             if sum(len(o[1]) for i in ids for o in kept[i]) < sum(len(o[1]) for i in ids for o in observations[i]):
                 observations = kept
-                drill0, markers0 = sol.carm_from_drill, {i: sol.carm_from_marker[i] for i in ids}
                 continue
-        chi = sol.marker_chi
-        worst = max(ids, key=lambda i: chi[i])
-        others = [chi[i] for i in ids if i != worst]
-        if len(ids) <= min_markers or chi[worst] <= outlier_chi or chi[worst] <= 3.0 * float(np.median(others)):
-            break
-        rejected.append(worst)
-        ids = [i for i in ids if i != worst]
-        drill0 = sol.carm_from_drill
-        markers0 = {i: sol.carm_from_marker[i] for i in ids}
+        break
+    # The final fit is plain least squares: its Jacobian gives the covariance.
+    sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
 
 
@@ -154,8 +157,8 @@ def _trim(observations, carm_from_marker, max_px: float) -> tuple:
     return tuple(out)
 
 
-def _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,
-           fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px) -> JointSolution:
+def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
+           fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px, *, loss: str) -> JointSolution:
     m = len(ids)
     poses0 = np.stack([markers0[i] for i in ids])
     pivots = poses0[:, :3, 3].copy()
@@ -212,7 +215,7 @@ def _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,
         f = residuals(xs)
         return (f[1:] - f[0]).T / steps
 
-    sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)
+    sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)
 
     def unpack(x):
         drill = perturb_about(x[:6], drill0, pivot_d)
@@ -229,7 +232,7 @@ def _solve(ids, observations, corners_px, marker_set, camera, drill0, markers0,
     dof = max(1, len(res) - n_par)
     red = float(np.sum(res**2) / dof)
     jac = np.asarray(sol.jac)
-    cov = np.linalg.pinv(jac.T @ jac) * max(1.0, red)
+    cov = np.linalg.pinv(jac.T @ jac) * red
     return JointSolution(
         carm_from_drill=drill,
         carm_from_marker={i: make_transform(rot[k], t[k]) for k, i in enumerate(ids)},
