@@ -56,6 +56,9 @@ class RejectedRing:
 class FluoroDetections:
     markers: tuple[DetectedMarker, ...]
     rejected: tuple[RejectedRing, ...]
+    # Every BB-like blob of the view, identified or not: a marker posed from another view can claim its
+    # BBs here by projection when its own ring could not identify it (edge-on, overlapping, cut).
+    blobs: tuple[DetectedBB, ...] = ()
 
     def by_id(self) -> dict[int, DetectedMarker]:
         return {m.marker_id: m for m in self.markers}
@@ -168,7 +171,8 @@ def detect_markers(
         for m in [m for m in markers if m.marker_id in dup]:
             rejected.append(RejectedRing(reason=f"marker id {m.marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
         markers = [m for m in markers if m.marker_id not in dup]
-    return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected))
+    every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False) for c, d in blobs)
+    return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
 
 
 def _arc_span_deg(points: NDArray[np.float32]) -> float:

@@ -83,7 +83,8 @@ def _distinct(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
 
 
 def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float) -> MarkerPose:
-    starts = [c for view, obj, img in observations for c in planar_candidates(view, obj, img)]
+    # IPPE needs 4 points; a view with 3 claimed BBs only joins the refinement.
+    starts = [c for view, obj, img in observations if len(obj) >= 4 for c in planar_candidates(view, obj, img)]
     fits = sorted((_refine(observations, c) for c in starts), key=lambda f: f[1])
     pose, rms, success = fits[0]
     mirror = next((f[0] for f in fits[1:] if _distinct(f[0], pose) and f[1] <= MIRROR_RATIO * max(rms, 0.1)), None)
@@ -126,4 +127,53 @@ def register_markers(
             per_marker.setdefault(m.marker_id, []).append((view, obj, img))
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = list(pool.map(lambda item: _solve_one(item[0], item[1], max_residual_px), sorted(per_marker.items())))
-    return tuple(poses)
+    if len(views) < 2:
+        return tuple(poses)
+    # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)
+    # claims its BBs there by projection from its pose, then is solved again over both views.
+    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers for b in m.bbs} for det in detections]
+    out = []
+    for pose in poses:
+        seen = {id(o[0]) for o in pose.observations}
+        extra = []
+        for k, (det, view) in enumerate(zip(detections, views)):
+            if id(view) in seen or not det.blobs:
+                continue
+            free = np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2)
+            found = _claim(view, pose.carm_from_marker, marker_set.by_id(pose.marker_id).bb_centers_mm, free)
+            if found is not None:
+                extra.append((view, *found))
+        if extra:
+            again = _solve_one(pose.marker_id, list(pose.observations) + extra, max_residual_px)
+            if again.converged or not pose.converged:
+                pose = again
+        out.append(pose)
+    return tuple(out)
+
+
+def _claim(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3):
+    """The design BBs (N, 3) and blob centres (N, 2) a pose explains in a view, after the best common shift.
+
+    The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole
+    projected pattern in another view: each (design BB, blob) pair proposes a shift, the one that matches
+    most BBs wins. None when fewer than ``min_bbs`` match.
+    """
+    if len(blobs_px) < min_bbs:
+        return None
+    pred = view.project(apply(carm_from_marker, design_bbs_mm))
+    best = None
+    for shift in (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2):
+        if np.hypot(*shift) > search_px:
+            continue
+        d = np.linalg.norm(pred[:, None, :] + shift - blobs_px[None], axis=2)
+        j = np.argmin(d, axis=1)
+        ok = d[np.arange(len(pred)), j] <= tol_px
+        # Each blob explains one BB only (edge-on BBs merge; a merged blob is not two BBs).
+        if len(set(j[ok])) < ok.sum():
+            continue
+        if best is None or ok.sum() > best[0]:
+            best = (int(ok.sum()), ok, j)
+    if best is None or best[0] < min_bbs:
+        return None
+    _, ok, j = best
+    return np.asarray(design_bbs_mm)[ok], blobs_px[j[ok]]

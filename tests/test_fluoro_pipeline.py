@@ -148,3 +148,18 @@ def test_marker_cut_by_the_field_edge_is_reported_not_guessed(scene):
     assert len(det.markers) == len(scene.carm_from_marker) - 1
     ids = [m.marker_id for m in det.markers]
     assert len(ids) == len(set(ids)) and set(ids) <= set(scene.carm_from_marker)
+
+
+def test_marker_unidentified_in_one_view_claims_its_bbs_there(scene, solved):
+    """A marker whose ring could not be identified in the second view (edge-on, overlapping) still uses
+    its BBs there, found by projection from its pose in the first view."""
+    dets, _, _ = solved
+    names = list(scene.views)
+    lost = dets[1].markers[0].marker_id
+    blind = replace(dets[1], markers=tuple(m for m in dets[1].markers if m.marker_id != lost))
+    poses = {p.marker_id: p for p in register_markers([dets[0], blind], [scene.views[n] for n in names], scene.marker_set)}
+    assert poses[lost].n_views == 2 and poses[lost].converged
+    assert np.linalg.norm(poses[lost].position_carm_mm - scene.carm_from_marker[lost][:3, 3]) < 0.3
+    one_view = register_markers([dets[0]], [scene.views[names[0]]], scene.marker_set)
+    alone = next(p for p in one_view if p.marker_id == lost)
+    assert np.linalg.norm(alone.position_carm_mm - scene.carm_from_marker[lost][:3, 3]) > np.linalg.norm(poses[lost].position_carm_mm - scene.carm_from_marker[lost][:3, 3])
