@@ -150,6 +150,26 @@ def write_docs(summary: list[dict], result: dict, command: str) -> None:
             f"{a[1]:.2f} [{a[0]:.2f}-{a[2]:.2f}] | {a[3]:.2f} | {s['outlier_pct']:.1f} % | {s['refusal_pct']:.0f} % | "
             f"{s['cover_pos_pct']:.0f} / {s['cover_ang_pct']:.0f} % | {s['unreliable_pct']:.0f} % | {s['unflagged_over_10deg']} | {ref_txt} |"
         )
+    lines += [
+        "",
+        "## How the product registers (what these figures measure)",
+        "",
+        "- **Marker poses in fluoroscopy** (`registration/marker_pose.py`): IPPE in every view that sees a marker, both",
+        "  of its planar solutions, each refined over every BB in every view; the runner-up is kept as the mirror pose",
+        "  when it fits within 3x the best (a marker nearly face-on to the beam fits its mirror pose about as well, with",
+        "  its normal off by about twice the tilt). A marker identified in one view claims its BBs in another view where",
+        "  its ring was not identified (edge-on in a lateral view, rings overlapping) by projection after the best common",
+        "  shift. A ring cut by the field's edge keeps its arc and BBs when at least half of it is in the field.",
+        "- **The mirror choice**: the camera's tag normal, carried into C by the Horn rotation, picks each marker's side.",
+        "- **One joint solve** (`registration/joint_solve.py`): every marker pose, `carm_from_drill` and the camera's",
+        "  focal scale and principal point (held by priors of their calibration uncertainty) by least squares over every",
+        "  BB in every view (0.35 px) and every tag corner (0.3 px); a robust pass names and rejects a marker that",
+        "  stands out and drops single BBs over 5 sigma. Markers whose fluoroscopy-only pose did not converge join it.",
+        "- **The predicted error**: the solve's covariance (scaled by its reduced chi-square) propagated to the axis with",
+        "  the drill axis's calibration uncertainty; 90 % and 95 % bounds of the position at the working point and of the",
+        "  angle; `reliable` is False when a 90 % bound is over its limit (`RELIABLE_POSITION_MM`, `RELIABLE_ANGLE_DEG`,",
+        "  3 mm / 3 deg, keywords of `predicted_axis_error`).",
+    ]
     reasons = Counter()
     for s in summary:
         if s["method"] == "joint":

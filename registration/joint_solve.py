@@ -118,6 +118,13 @@ def joint_solve(
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
     observations = {i: tuple(observations[i]) for i in ids}
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px)
+    # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
+    sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
+    clean = max(sol.marker_chi.values()) <= outlier_chi and all(
+        len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px)[k][1]) == len(o[1])
+        for i in ids for k, o in enumerate(observations[i]))
+    if clean:
+        return sol
     trimmed = False
     while True:
         # Judged on a robust fit (soft L1 beyond 3 sigma), so that one bad marker cannot drag the others

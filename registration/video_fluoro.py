@@ -197,8 +197,8 @@ def predicted_axis_error(
     *,
     working_point_carm_mm: NDArray[np.float64],
     fluoro_sigma_mm: float = 0.15,
-    axis_sigma_mm: float = 0.15,
-    axis_sigma_deg: float = 0.12,
+    axis_sigma_mm: float = 0.1,
+    axis_sigma_deg: float = 0.085,
     focal_rel_sigma: float = 0.002,
     samples: int = 64,
     seed: int = 0,
@@ -216,6 +216,11 @@ def predicted_axis_error(
     each registered by Horn. The 90th and 95th percentiles of the axis's
     displacement at the working point and of its angle are the bounds;
     ``reliable`` is False when a 90 % bound exceeds its limit.
+
+    ``axis_sigma_mm`` (per axis) and ``axis_sigma_deg`` (per tilt component) are the drill axis's
+    calibration uncertainty: drill.json's ``residual_mm`` and ``residual_deg`` / sqrt(2) (an RMS tilt of
+    ``residual_deg`` spread over the two directions that tilt the axis); the defaults are those of a
+    0.1 mm / 0.12 deg calibration.
     """
     rng = np.random.default_rng(seed)
     axis_c = axis_drill.transformed(registration.carm_from_drill)
