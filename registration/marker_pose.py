@@ -83,8 +83,19 @@ def _distinct(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
 
 
 def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float) -> MarkerPose:
-    # IPPE needs 4 points; a view with 3 claimed BBs only joins the refinement.
-    starts = [c for view, obj, img in observations if len(obj) >= 4 for c in planar_candidates(view, obj, img)]
+    # Both planar solutions of the view with the most BBs (IPPE needs 4; a view with 3 claimed BBs only
+    # joins the refinement): refined over every view, the wrong mirror no longer fits the others.
+    starts: list[NDArray[np.float64]] = []
+    for view, obj, img in sorted(observations, key=lambda o: -len(o[1])):
+        if len(obj) < 4:
+            break
+        try:
+            starts = planar_candidates(view, obj, img)
+            break
+        except (ValueError, cv2.error):  # BBs nearly collinear (edge-on): try the next view
+            continue
+    if not starts:
+        raise ValueError(f"marker {marker_id}: no view's BBs give a planar pose (IPPE failed)")
     fits = sorted((_refine(observations, c) for c in starts), key=lambda f: f[1])
     pose, rms, success = fits[0]
     mirror = next((f[0] for f in fits[1:] if _distinct(f[0], pose) and f[1] <= MIRROR_RATIO * max(rms, 0.1)), None)
@@ -99,6 +110,14 @@ def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.flo
         mirror_carm_from_marker=mirror,
         observations=tuple(observations),
     )
+
+
+def _try_solve(marker_id: int, observations, max_residual_px: float) -> MarkerPose | None:
+    """A marker whose BBs give no planar pose in any view (nearly collinear) is left out, not fatal to the others."""
+    try:
+        return _solve_one(marker_id, observations, max_residual_px)
+    except ValueError:
+        return None
 
 
 def register_markers(
@@ -126,7 +145,7 @@ def register_markers(
             img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
             per_marker.setdefault(m.marker_id, []).append((view, obj, img))
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        poses = list(pool.map(lambda item: _solve_one(item[0], item[1], max_residual_px), sorted(per_marker.items())))
+        poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
     if len(views) < 2:
         return tuple(poses)
     # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)
@@ -144,7 +163,10 @@ def register_markers(
             if found is not None:
                 extra.append((view, *found))
         if extra:
-            again = _solve_one(pose.marker_id, list(pose.observations) + extra, max_residual_px)
+            try:
+                again = _solve_one(pose.marker_id, list(pose.observations) + extra, max_residual_px)
+            except ValueError:
+                again = pose
             if again.converged or not pose.converged:
                 pose = again
         out.append(pose)
@@ -161,18 +183,19 @@ def _claim(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_
     if len(blobs_px) < min_bbs:
         return None
     pred = view.project(apply(carm_from_marker, design_bbs_mm))
+    shifts = (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2)
+    shifts = shifts[np.hypot(shifts[:, 0], shifts[:, 1]) <= search_px]
+    if not len(shifts):
+        return None
+    d = np.linalg.norm(pred[None, :, None, :] + shifts[:, None, None, :] - blobs_px[None, None], axis=3)  # (S, N, B)
+    j = np.argmin(d, axis=2)
+    ok = np.take_along_axis(d, j[:, :, None], axis=2)[:, :, 0] <= tol_px
     best = None
-    for shift in (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2):
-        if np.hypot(*shift) > search_px:
-            continue
-        d = np.linalg.norm(pred[:, None, :] + shift - blobs_px[None], axis=2)
-        j = np.argmin(d, axis=1)
-        ok = d[np.arange(len(pred)), j] <= tol_px
+    for k in np.argsort(-ok.sum(axis=1), kind="stable")[:8]:
         # Each blob explains one BB only (edge-on BBs merge; a merged blob is not two BBs).
-        if len(set(j[ok])) < ok.sum():
-            continue
-        if best is None or ok.sum() > best[0]:
-            best = (int(ok.sum()), ok, j)
+        n = int(ok[k].sum())
+        if len(set(j[k][ok[k]].tolist())) == n and (best is None or n > best[0]):
+            best = (n, ok[k], j[k])
     if best is None or best[0] < min_bbs:
         return None
     _, ok, j = best
