@@ -7,6 +7,7 @@ beam, where a marker's two planar poses fit the BBs about equally well.
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, FluoroDetections
@@ -70,3 +71,32 @@ def test_perturb_about_rotates_about_the_pivot():
     at_pivot = apply(invert(pose), pivot[None])
     assert np.allclose(apply(moved, at_pivot)[0], pivot)
     assert np.allclose(perturb_about(np.zeros(6), pose, pivot), pose)
+
+
+def test_covariance_matches_the_scatter_of_solutions(ap_scene):
+    """With the noise the solve assumes (0.35 px BBs, 0.3 px corners), the drill pose's errors over many draws
+    follow its covariance: their mean squared Mahalanobis distance is about 6, the number of parameters."""
+    from drillnav.registration.joint_solve import joint_solve
+
+    scene, _ = ap_scene
+    view = scene.views["ap"]
+    camera = scene.calibrated_camera
+    drill_from_carm = invert(scene.carm_from_drill)
+    rng = np.random.default_rng(11)
+    d2 = []
+    for _ in range(30):
+        observations, corners = {}, {}
+        for marker_id, pose in scene.carm_from_marker.items():
+            design = scene.marker_set.by_id(marker_id)
+            px = view.project(apply(pose, design.bb_centers_mm)) + rng.normal(scale=0.35, size=(len(design.bbs), 2))
+            observations[marker_id] = ((view, design.bb_centers_mm, px),)
+            corners[marker_id] = camera.project(apply(drill_from_carm @ pose, design.tag_corners_mm())) + rng.normal(scale=0.3, size=(4, 2))
+        sol = joint_solve(observations=observations, corners_px=corners, marker_set=scene.marker_set, camera=camera,
+                          carm_from_drill0=scene.carm_from_drill, carm_from_marker0=dict(scene.carm_from_marker), focal_rel_sigma=1e-6, principal_sigma_px=1e-4)
+        # The error as the solve's own perturbation of the truth about its pivot.
+        rot = sol.carm_from_drill[:3, :3] @ scene.carm_from_drill[:3, :3].T
+        rotvec = Rotation.from_matrix(rot).as_rotvec()
+        t = sol.carm_from_drill[:3, 3] - (rot @ (scene.carm_from_drill[:3, 3] - sol.pivot_carm_mm) + sol.pivot_carm_mm)
+        delta = np.concatenate([rotvec, t])
+        d2.append(float(delta @ np.linalg.solve(sol.covariance_drill, delta)))
+    assert 3.0 < np.mean(d2) < 12.0, np.mean(d2)
