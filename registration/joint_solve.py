@@ -212,15 +212,29 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         prior = np.stack([intr[:, 0] / focal_rel_sigma, intr[:, 1] / principal_sigma_px, intr[:, 2] / principal_sigma_px], axis=1)
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
 
-    # The Jacobian is block sparse (a BB depends on its own marker's 6 parameters, a corner on its
-    # marker's, the drill's and the intrinsics): with ~40 parameters one batched evaluation of all
-    # forward differences costs less than scipy's grouped sparse differences (measured ~2 ms against ~30 ms).
-    steps = np.full(n_par, 1e-6)
+    # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
+    # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at
+    # once (the grouping scipy's jac_sparsity would find): 6 + 3 + 6 forward differences, evaluated in one
+    # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
+    # sparse differences, which evaluate the groups one call at a time).
+    h = 1e-6
+    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), np.full(N_INTRINSICS, -1)])
+    in_marker = np.nonzero(row_marker >= 0)[0]
+    steps = np.zeros((15, n_par))
+    steps[np.arange(6), np.arange(6)] = h
+    steps[6 + np.arange(N_INTRINSICS), 6 + 6 * m + np.arange(N_INTRINSICS)] = h
+    for k in range(6):
+        steps[9 + k, 6 + k : 6 + 6 * m : 6] = h
 
     def jacobian(x):
-        xs = np.vstack([x, x + np.diag(steps)])
-        f = residuals(xs)
-        return (f[1:] - f[0]).T / steps
+        f = residuals(np.vstack([x, x + steps]))
+        diff = (f[1:] - f[0]) / h
+        jac = np.zeros((f.shape[1], n_par))
+        jac[:, :6] = diff[:6].T
+        jac[:, 6 + 6 * m :] = diff[6:9].T
+        for k in range(6):
+            jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[9 + k, in_marker]
+        return jac
 
     sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)
 
