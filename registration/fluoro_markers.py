@@ -6,7 +6,8 @@ A white top-hat removes anatomy; an opening separates the BBs (discs of
 connected component fitted with an ellipse; the BBs inside it are rectified
 into the marker plane through the ellipse (circle of 24 mm) and matched with
 :func:`drillnav.registration.markers.identify`. A ring that touches the image
-border, or two rings that merge, are reported, not guessed.
+border keeps its arc (and its BBs in the field) when at least half of it is
+in the field; two rings that merge are reported, not guessed.
 """
 
 from __future__ import annotations
@@ -55,6 +56,9 @@ class RejectedRing:
 class FluoroDetections:
     markers: tuple[DetectedMarker, ...]
     rejected: tuple[RejectedRing, ...]
+    # Every BB-like blob of the view, identified or not: a marker posed from another view can claim its
+    # BBs here by projection when its own ring could not identify it (edge-on, overlapping, cut).
+    blobs: tuple[DetectedBB, ...] = ()
 
     def by_id(self) -> dict[int, DetectedMarker]:
         return {m.marker_id: m for m in self.markers}
@@ -119,8 +123,13 @@ def detect_markers(
             rejected.append(RejectedRing(reason="rings overlap in projection", center_px=centre.astype(float)))
             continue
         if x <= 1 or y <= 1 or x + w >= cols - 1 or y + h >= rows - 1:
-            rejected.append(RejectedRing(reason="ring partly outside the field of view", center_px=centre.astype(float)))
-            continue
+            # A ring cut by the field's edge still gives an ellipse from its arc, and its BBs inside the field
+            # still count: reject only when too little of the wire is left to fit.
+            inner = pts[(pts[:, 0] > 2) & (pts[:, 1] > 2) & (pts[:, 0] < cols - 3) & (pts[:, 1] < rows - 3)]
+            if len(inner) < 0.4 * np.pi * min_ring_px * wire_px or _arc_span_deg(inner) < 180.0:
+                rejected.append(RejectedRing(reason="ring mostly outside the field of view", center_px=centre.astype(float)))
+                continue
+            pts = inner
         ellipse = cv2.fitEllipse(pts)
         (cx, cy), (d1, d2), angle = ellipse
         major, minor = max(d1, d2) / 2.0, min(d1, d2) / 2.0
@@ -162,7 +171,16 @@ def detect_markers(
         for m in [m for m in markers if m.marker_id in dup]:
             rejected.append(RejectedRing(reason=f"marker id {m.marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
         markers = [m for m in markers if m.marker_id not in dup]
-    return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected))
+    every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False) for c, d in blobs)
+    return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _arc_span_deg(points: NDArray[np.float32]) -> float:
+    """Angular span (deg) of wire pixels about their bounding box centre: 360 for a whole ring."""
+    c = (points.min(axis=0) + points.max(axis=0)) / 2.0
+    ang = np.sort(np.degrees(np.arctan2(points[:, 1] - c[1], points[:, 0] - c[0])))
+    gaps = np.diff(np.concatenate([ang, ang[:1] + 360.0]))
+    return float(360.0 - gaps.max())
 
 
 def _inside(p, ellipse, factor: float) -> bool:

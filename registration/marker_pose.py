@@ -1,10 +1,15 @@
 """Marker poses in the C-arm frame from one or several views.
 
 Known-component registration with the marker's design as the component: each
-identified BB gives a 2D-3D correspondence. IPPE on the best single view
-initialises the pose (planar target), then a joint Levenberg-Marquardt
-refinement minimises the reprojection error of every BB in every view. Each
-pose gets a residual (RMS px) and a convergence flag.
+identified BB gives a 2D-3D correspondence. IPPE in every view that sees the
+marker initialises the pose (planar target); both of its solutions are kept,
+because a planar target seen nearly face-on in a weak-perspective view has two
+poses that fit almost equally (mirror images about the line of sight, normals
+apart by about twice the tilt). Each candidate is refined by Levenberg-Marquardt
+over every BB in every view; the best fit wins, and the runner-up is kept as
+``mirror_carm_from_marker`` when it fits nearly as well, so that the camera's
+view of the tag can choose later (:mod:`drillnav.registration.joint_solve`).
+Each pose gets a residual (RMS px) and a convergence flag.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from .fluoro_markers import FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
-__all__ = ["MarkerPose", "register_markers"]
+__all__ = ["MarkerPose", "register_markers", "planar_candidates", "MIRROR_RATIO"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,6 +40,10 @@ class MarkerPose:
     n_views: int
     n_points: int
     converged: bool
+    # The other planar solution when it fits within MIRROR_RATIO of the best (None: unambiguous).
+    mirror_carm_from_marker: NDArray[np.float64] | None = None
+    # (view, design BB centres (N, 3) mm, detected centres (N, 2) px) per view: the joint solve re-uses them.
+    observations: tuple = ()
 
     @property
     def position_carm_mm(self) -> NDArray[np.float64]:
@@ -42,28 +51,56 @@ class MarkerPose:
         return self.carm_from_marker[:3, 3].copy()
 
 
-def _initial_pose(view: CArmView, obj: NDArray[np.float64], img: NDArray[np.float64]) -> NDArray[np.float64]:
+# A mirror solution whose RMS residual is within this factor of the best is kept as an alternative:
+# with 0.3 px BB noise the two planar solutions of a marker tilted under ~15 deg to the beam differ by less.
+MIRROR_RATIO = 3.0
+
+
+def planar_candidates(view: CArmView, obj: NDArray[np.float64], img: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """Both IPPE solutions (carm_from_marker (4, 4)) of a planar marker from one view's BBs (N >= 4)."""
     k, source_from_carm = view.decompose()
-    ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, None, flags=cv2.SOLVEPNP_IPPE)
+    if not n:
         raise ValueError("IPPE failed for the marker's BBs")
-    rot, _ = cv2.Rodrigues(rvec)
-    return invert(source_from_carm) @ make_transform(rot, tvec.ravel())
+    carm_from_source = invert(source_from_carm)
+    return [carm_from_source @ make_transform(cv2.Rodrigues(r)[0], t.ravel()) for r, t in zip(rvecs, tvecs)]
 
 
-def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float) -> MarkerPose:
-    best = max(observations, key=lambda o: len(o[1]))
-    carm_from_marker0 = _initial_pose(best[0], best[1], best[2])
+def _refine(observations, carm_from_marker0: NDArray[np.float64]):
     rv0, t0 = to_rotvec(carm_from_marker0)
 
     def residual(x: NDArray[np.float64]) -> NDArray[np.float64]:
         t = from_rotvec(x[:3], x[3:])
         return np.concatenate([(view.project(apply(t, obj)) - img).ravel() for view, obj, img in observations])
 
-    sol = least_squares(residual, np.concatenate([rv0, t0]), method="lm", xtol=1e-10, ftol=1e-10)
-    pose = from_rotvec(sol.x[:3], sol.x[3:])
+    # Capped: a start on the wrong mirror side creeps for hundreds of steps towards the right one; the
+    # right start converges in a few, and the other start is only needed as the mirror alternative.
+    sol = least_squares(residual, np.concatenate([rv0, t0]), method="lm", xtol=1e-10, ftol=1e-10, max_nfev=60)
     r = sol.fun.reshape(-1, 2)
-    rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    return from_rotvec(sol.x[:3], sol.x[3:]), float(np.sqrt(np.mean(np.sum(r * r, axis=1)))), bool(sol.success)
+
+
+def _distinct(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
+    return float(a[:3, 2] @ b[:3, 2]) < np.cos(np.radians(1.0)) or float(np.linalg.norm(a[:3, 3] - b[:3, 3])) > 0.5
+
+
+def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float) -> MarkerPose:
+    # Both planar solutions of the view with the most BBs (IPPE needs 4; a view with 3 claimed BBs only
+    # joins the refinement): refined over every view, the wrong mirror no longer fits the others.
+    starts: list[NDArray[np.float64]] = []
+    for view, obj, img in sorted(observations, key=lambda o: -len(o[1])):
+        if len(obj) < 4:
+            break
+        try:
+            starts = planar_candidates(view, obj, img)
+            break
+        except (ValueError, cv2.error):  # BBs nearly collinear (edge-on): try the next view
+            continue
+    if not starts:
+        raise ValueError(f"marker {marker_id}: no view's BBs give a planar pose (IPPE failed)")
+    fits = sorted((_refine(observations, c) for c in starts), key=lambda f: f[1])
+    pose, rms, success = fits[0]
+    mirror = next((f[0] for f in fits[1:] if _distinct(f[0], pose) and f[1] <= MIRROR_RATIO * max(rms, 0.1)), None)
     n_points = sum(len(o[1]) for o in observations)
     return MarkerPose(
         marker_id=marker_id,
@@ -71,8 +108,18 @@ def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.flo
         residual_px=rms,
         n_views=len(observations),
         n_points=n_points,
-        converged=bool(sol.success and rms <= max_residual_px),
+        converged=bool(success and rms <= max_residual_px),
+        mirror_carm_from_marker=mirror,
+        observations=tuple(observations),
     )
+
+
+def _try_solve(marker_id: int, observations, max_residual_px: float) -> MarkerPose | None:
+    """A marker whose BBs give no planar pose in any view (nearly collinear) is left out, not fatal to the others."""
+    try:
+        return _solve_one(marker_id, observations, max_residual_px)
+    except ValueError:
+        return None
 
 
 def register_markers(
@@ -100,5 +147,58 @@ def register_markers(
             img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
             per_marker.setdefault(m.marker_id, []).append((view, obj, img))
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        poses = list(pool.map(lambda item: _solve_one(item[0], item[1], max_residual_px), sorted(per_marker.items())))
-    return tuple(poses)
+        poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
+    if len(views) < 2:
+        return tuple(poses)
+    # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)
+    # claims its BBs there by projection from its pose, then is solved again over both views.
+    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers for b in m.bbs} for det in detections]
+    out = []
+    for pose in poses:
+        seen = {id(o[0]) for o in pose.observations}
+        extra = []
+        for k, (det, view) in enumerate(zip(detections, views)):
+            if id(view) in seen or not det.blobs:
+                continue
+            free = np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2)
+            found = _claim(view, pose.carm_from_marker, marker_set.by_id(pose.marker_id).bb_centers_mm, free)
+            if found is not None:
+                extra.append((view, *found))
+        if extra:
+            try:
+                again = _solve_one(pose.marker_id, list(pose.observations) + extra, max_residual_px)
+            except ValueError:
+                again = pose
+            if again.converged or not pose.converged:
+                pose = again
+        out.append(pose)
+    return tuple(out)
+
+
+def _claim(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3):
+    """The design BBs (N, 3) and blob centres (N, 2) a pose explains in a view, after the best common shift.
+
+    The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole
+    projected pattern in another view: each (design BB, blob) pair proposes a shift, the one that matches
+    most BBs wins. None when fewer than ``min_bbs`` match.
+    """
+    if len(blobs_px) < min_bbs:
+        return None
+    pred = view.project(apply(carm_from_marker, design_bbs_mm))
+    shifts = (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2)
+    shifts = shifts[np.hypot(shifts[:, 0], shifts[:, 1]) <= search_px]
+    if not len(shifts):
+        return None
+    d = np.linalg.norm(pred[None, :, None, :] + shifts[:, None, None, :] - blobs_px[None, None], axis=3)  # (S, N, B)
+    j = np.argmin(d, axis=2)
+    ok = np.take_along_axis(d, j[:, :, None], axis=2)[:, :, 0] <= tol_px
+    best = None
+    for k in np.argsort(-ok.sum(axis=1), kind="stable")[:8]:
+        # Each blob explains one BB only (edge-on BBs merge; a merged blob is not two BBs).
+        n = int(ok[k].sum())
+        if len(set(j[k][ok[k]].tolist())) == n and (best is None or n > best[0]):
+            best = (n, ok[k], j[k])
+    if best is None or best[0] < min_bbs:
+        return None
+    _, ok, j = best
+    return np.asarray(design_bbs_mm)[ok], blobs_px[j[ok]]

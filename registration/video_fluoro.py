@@ -1,42 +1,64 @@
 """Video-to-fluoroscopy registration: ``carm_from_drill`` from markers seen by both the camera and the C-arm.
 
 1. Horn (weighted by the video covariances) between X_D(m) and X_C(m), the reference's method.
-2. Joint PnP on every tag corner: the corners' 3D positions in C (from each
+   An outlier marker (e.g. one bumped since the shot) is rejected by its
+   point-based residual (leave-one-out), and per-marker FRE is reported.
+2. Each marker's mirror ambiguity in fluoroscopy is settled by the tag normal
+   the camera sees (carried into C by the Horn rotation).
+3. PnP on every tag corner: the corners' 3D positions in C (from each
    registered marker pose and the design) against their sub-pixel image
    positions, so all markers constrain the camera pose together.
-3. An outlier marker (e.g. one bumped since the shot) is rejected by its
-   point-based residual (leave-one-out), and per-marker FRE is reported.
-4. A predicted error for the drill axis by Monte-Carlo propagation of the
-   input uncertainties.
+4. When the marker poses carry their BB observations (``register_markers``
+   keeps them), one joint solve of all marker poses and ``carm_from_drill``
+   over every BB and every tag corner (:mod:`.joint_solve`), with its
+   covariance; ``joint=False`` stops after step 3 (the former pipeline).
+5. A predicted error for the drill axis: the joint solve's covariance (which
+   carries the camera's calibration uncertainty) propagated to the axis with
+   the drill axis's calibration uncertainty; Monte-Carlo over the inputs when
+   there is no covariance. Its 90 % bound decides ``reliable``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
 from .errors import DegenerateInput, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
+from .joint_solve import joint_solve
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_markers import VideoDetections
 
-__all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error"]
+__all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
+
+
+# Limits on the 90 % bound above which an axis is flagged unreliable (displays grey it out).
+RELIABLE_POSITION_MM = 3.0
+RELIABLE_ANGLE_DEG = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)
 class PredictedError:
-    """1-sigma-based 95 % figures of the drill axis: position at the working point (mm) and angle (deg)."""
+    """Bounds on the drill axis's error: position at the working point (mm) and angle (deg).
+
+    position_mm, angle_deg : 95 % bounds; position90_mm, angle90_deg : 90 % bounds.
+    reliable : both 90 % bounds within the limits given to :func:`predicted_axis_error`.
+    """
 
     position_mm: float
     angle_deg: float
     cone_half_angle_deg: float
+    position90_mm: float = float("nan")
+    angle90_deg: float = float("nan")
+    reliable: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -49,6 +71,12 @@ class DrillRegistration:
     used_ids: tuple[int, ...]
     rejected_ids: tuple[int, ...]
     corner_rms_px: float
+    # From the joint solve (None / empty without it): covariance (6, 6) of a perturbation of carm_from_drill
+    # (rotation vector rad, translation mm) rotating about pivot_carm_mm, and the refined marker poses.
+    covariance_drill: NDArray[np.float64] | None = None
+    pivot_carm_mm: NDArray[np.float64] | None = None
+    carm_from_marker: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    method: str = "horn+pnp"
 
 
 def register_video_to_fluoro(
@@ -59,34 +87,45 @@ def register_video_to_fluoro(
     *,
     outlier_mm: float = 2.5,
     min_markers: int = 3,
+    joint: bool = True,
 ) -> DrillRegistration:
-    poses = {p.marker_id: p for p in marker_poses if p.converged}
+    """``carm_from_drill`` from the markers seen by the camera and localised in fluoroscopy.
+
+    ``joint``: finish with the joint solve of every marker pose and the drill pose when the marker poses carry
+    their BB observations (the default); False keeps the former Horn + corner PnP pipeline.
+    """
+    every = {p.marker_id: p for p in marker_poses}
+    poses = {i: p for i, p in every.items() if p.converged}
     vids = video.by_id()
     common = sorted(set(poses) & set(vids))
-    if len(common) < min_markers:
+    # The joint solve also takes markers whose fluoroscopy-only pose did not converge (edge-on, few BBs, one
+    # view): the camera fixes their orientation, so their BBs still count.
+    joinable = sorted(i for i in set(every) & set(vids) if every[i].observations) if joint else []
+    if len(common) < min_markers and len(joinable) < min_markers:
         raise MarkersNotFound(
-            f"only {len(common)} marker(s) seen by both the camera and fluoroscopy "
+            f"only {max(len(common), len(joinable))} marker(s) seen by both the camera and fluoroscopy "
             f"(camera: {sorted(vids)}, fluoroscopy: {sorted(poses)}); at least {min_markers} are needed"
         )
-    used = list(common)
+    used = list(common if len(common) >= min_markers else joinable)
     rejected: list[int] = []
     while True:
-        fit = _horn(used, vids, poses)
+        fit = _horn(used, vids, every)
         worst = int(np.argmax(fit.residuals_mm))
         if fit.residuals_mm[worst] <= outlier_mm or len(used) <= min_markers:
             break
         # Leave-one-out: does the fit without the worst marker explain the others well?
         rest = [i for k, i in enumerate(used) if k != worst]
-        if _horn(rest, vids, poses).fre_mm < fit.fre_mm:
+        if _horn(rest, vids, every).fre_mm < fit.fre_mm:
             rejected.append(used.pop(worst))
         else:
             break
     carm_from_drill_horn = fit.target_from_source
+    carm_from_marker = {i: _camera_side(every[i], carm_from_drill_horn @ vids[i].camera_from_tag) for i in set(used) | set(common) | set(joinable)}
     # Joint PnP on all tag corners of the markers kept.
     obj, img = [], []
     for i in used:
         design = marker_set.by_id(i)
-        obj.append(apply(poses[i].carm_from_marker, design.tag_corners_mm()))
+        obj.append(apply(carm_from_marker[i], design.tag_corners_mm()))
         img.append(vids[i].corners_px)
     obj_a, img_a = np.concatenate(obj), np.concatenate(img)
     drill_from_carm0 = invert(carm_from_drill_horn)
@@ -96,8 +135,29 @@ def register_video_to_fluoro(
     carm_from_drill = invert(make_transform(rot, tvec.ravel()))
     proj, _ = cv2.projectPoints(obj_a, rvec, tvec, camera.camera_matrix, camera.distortion)
     corner_rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_a) ** 2, axis=1))))
+    extra: dict = {}
+    if len(joinable) >= min_markers:
+        for i in joinable:
+            if not every[i].converged:  # orientation from the camera, position from fluoroscopy
+                start = carm_from_drill @ vids[i].camera_from_tag
+                start[:3, 3] = every[i].position_carm_mm
+                carm_from_marker[i] = start
+        sol = joint_solve(
+            observations={i: every[i].observations for i in joinable},
+            corners_px={i: vids[i].corners_px for i in joinable},
+            marker_set=marker_set,
+            camera=camera,
+            carm_from_drill0=carm_from_drill,
+            carm_from_marker0=carm_from_marker,
+            min_markers=min_markers,
+        )
+        carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
+        used, rejected = list(sol.used_ids), list(sol.rejected_ids)
+        carm_from_marker.update(sol.carm_from_marker)
+        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint")
+    common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
-    fre = {i: float(np.linalg.norm(apply(drill_from_carm, poses[i].position_carm_mm) - vids[i].position_camera_mm)) for i in common}
+    fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
     return DrillRegistration(
         carm_from_drill=carm_from_drill,
         carm_from_drill_horn=carm_from_drill_horn,
@@ -105,7 +165,18 @@ def register_video_to_fluoro(
         used_ids=tuple(used),
         rejected_ids=tuple(rejected),
         corner_rms_px=corner_rms,
+        carm_from_marker=carm_from_marker,
+        **extra,
     )
+
+
+def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The marker's fluoroscopy pose, or its mirror solution when that one's normal is nearer the camera's."""
+    if pose.mirror_carm_from_marker is None:
+        return pose.carm_from_marker
+    normal = carm_from_tag_video[:3, 2]
+    best = max((pose.carm_from_marker, pose.mirror_carm_from_marker), key=lambda t: float(t[:3, 2] @ normal))
+    return np.asarray(best)
 
 
 def _horn(ids, vids, poses):
@@ -126,45 +197,72 @@ def predicted_axis_error(
     *,
     working_point_carm_mm: NDArray[np.float64],
     fluoro_sigma_mm: float = 0.15,
-    axis_sigma_mm: float = 0.15,
-    axis_sigma_deg: float = 0.12,
+    axis_sigma_mm: float = 0.1,
+    axis_sigma_deg: float = 0.085,
     focal_rel_sigma: float = 0.002,
     samples: int = 64,
     seed: int = 0,
+    position_limit_mm: float = RELIABLE_POSITION_MM,
+    angle_limit_deg: float = RELIABLE_ANGLE_DEG,
 ) -> PredictedError:
-    """Monte-Carlo error of the axis from every input's uncertainty.
+    """Error bounds of the axis from every input's uncertainty.
 
-    Draws the video X_D from their covariances with a common focal-length scale
-    error (which scales depth for all markers alike), the fluoroscopy X_C with
-    ``fluoro_sigma_mm``, and the calibrated drill axis with its calibration
-    uncertainty; the 95th percentiles of the axis's displacement at the working
-    point and of its angle are the prediction.
+    With a joint solve (``registration.covariance_drill``): draws of the drill
+    pose from its covariance (which already carries the camera's calibration
+    uncertainty and is scaled by the fit's reduced chi-square), with the
+    calibrated drill axis drawn from its own uncertainty (drill.json).
+    Without: draws of the video X_D from their covariances with a common
+    focal-length scale error, the fluoroscopy X_C with ``fluoro_sigma_mm``,
+    each registered by Horn. The 90th and 95th percentiles of the axis's
+    displacement at the working point and of its angle are the bounds;
+    ``reliable`` is False when a 90 % bound exceeds its limit.
+
+    ``axis_sigma_mm`` (per axis) and ``axis_sigma_deg`` (per tilt component) are the drill axis's
+    calibration uncertainty: drill.json's ``residual_mm`` and ``residual_deg`` / sqrt(2) (an RMS tilt of
+    ``residual_deg`` spread over the two directions that tilt the axis); the defaults are those of a
+    0.1 mm / 0.12 deg calibration.
     """
     rng = np.random.default_rng(seed)
-    vids = video.by_id()
-    poses = {p.marker_id: p for p in marker_poses}
-    ids = list(registration.used_ids)
-    src = np.array([vids[i].position_camera_mm for i in ids])  # (N, 3)
-    dst = np.array([poses[i].position_carm_mm for i in ids])
-    chol = np.linalg.cholesky(np.array([vids[i].covariance_mm2 for i in ids]) + 1e-9 * np.eye(3))  # (N, 3, 3)
     axis_c = axis_drill.transformed(registration.carm_from_drill)
     s0 = float(np.dot(working_point_carm_mm - axis_c.point_mm, axis_c.direction))
     ref = axis_c.at(s0)[0]
-    # All draws at once (B samples): video points, common focal scale, fluoroscopy points, axis calibration.
-    s = src + np.einsum("nij,bnj->bni", chol, rng.normal(size=(samples, len(ids), 3)))
-    s = s * (1.0 + rng.normal(scale=focal_rel_sigma, size=(samples, 1, 1)))
-    d = dst + rng.normal(scale=fluoro_sigma_mm, size=(samples, *dst.shape))
-    carm_from_drill = absolute_orientation_batch(s, d)  # (B, 4, 4)
-    tilt = np.radians(axis_sigma_deg) * rng.normal(size=(samples, 3))
+    if registration.covariance_drill is not None:
+        # A covariance is cheap to sample: enough draws for steady 90th/95th percentiles.
+        n = max(samples, 512)
+        chol = np.linalg.cholesky(registration.covariance_drill + 1e-12 * np.eye(6))
+        delta = rng.normal(size=(n, 6)) @ chol.T
+        r = Rotation.from_rotvec(delta[:, :3]).as_matrix()
+        pivot = registration.pivot_carm_mm
+        carm_from_drill = np.repeat(registration.carm_from_drill[None], n, axis=0)
+        carm_from_drill[:, :3, :3] = r @ registration.carm_from_drill[:3, :3]
+        carm_from_drill[:, :3, 3] = np.einsum("bij,j->bi", r, registration.carm_from_drill[:3, 3] - pivot) + pivot + delta[:, 3:]
+    else:
+        n = samples
+        vids = video.by_id()
+        poses = {p.marker_id: p for p in marker_poses}
+        ids = list(registration.used_ids)
+        src = np.array([vids[i].position_camera_mm for i in ids])  # (N, 3)
+        dst = np.array([poses[i].position_carm_mm for i in ids])
+        chol = np.linalg.cholesky(np.array([vids[i].covariance_mm2 for i in ids]) + 1e-9 * np.eye(3))  # (N, 3, 3)
+        # All draws at once (B samples): video points, common focal scale, fluoroscopy points.
+        s = src + np.einsum("nij,bnj->bni", chol, rng.normal(size=(n, len(ids), 3)))
+        s = s * (1.0 + rng.normal(scale=focal_rel_sigma, size=(n, 1, 1)))
+        d = dst + rng.normal(scale=fluoro_sigma_mm, size=(n, *dst.shape))
+        carm_from_drill = absolute_orientation_batch(s, d)  # (B, 4, 4)
+    tilt = np.radians(axis_sigma_deg) * rng.normal(size=(n, 3))
     k = np.linalg.norm(tilt, axis=1, keepdims=True)
     unit = np.divide(tilt, k, out=np.zeros_like(tilt), where=k > 0)
     direction_d = np.cos(k) * axis_drill.direction + np.sin(k) * np.cross(unit, axis_drill.direction)
-    point_d = axis_drill.point_mm + rng.normal(scale=axis_sigma_mm, size=(samples, 3))
+    point_d = axis_drill.point_mm + rng.normal(scale=axis_sigma_mm, size=(n, 3))
     point_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], point_d) + carm_from_drill[:, :3, 3]
     direction_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], direction_d)
     direction_c /= np.linalg.norm(direction_c, axis=1, keepdims=True)
     nearest = point_c + np.sum((ref - point_c) * direction_c, axis=1, keepdims=True) * direction_c
     pos = np.linalg.norm(nearest - ref, axis=1)
     ang = np.degrees(np.arccos(np.clip(direction_c @ axis_c.direction, -1.0, 1.0)))
-    p95, a95 = float(np.percentile(pos, 95)), float(np.percentile(ang, 95))
-    return PredictedError(position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95)
+    p90, p95 = (float(v) for v in np.percentile(pos, [90, 95]))
+    a90, a95 = (float(v) for v in np.percentile(ang, [90, 95]))
+    return PredictedError(
+        position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95, position90_mm=p90, angle90_deg=a90,
+        reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg),
+    )

@@ -2,8 +2,9 @@
 
 Per frame: detect the 6x6 tags, refine corners to sub-pixel, solve each tag's
 pose with IPPE for squares (both solutions, the better reprojection wins, then
-Levenberg-Marquardt refinement), and move the tag centre 2 mm along the tag
-normal to the central BB: ``X_D = camera_from_tag @ (0, 0, -offset)``.
+Levenberg-Marquardt refinement), and move from the tag centre to the central BB
+by the marker's tag offset: ``X_D = camera_from_tag @ (-tag_center_mm)``
+(``(0, 0, -2)`` mm in the default design).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import PinholeCamera
+from .markers import MarkerSet
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points"]
@@ -91,8 +93,21 @@ def tag_object_points(tag_size_mm: float) -> NDArray[np.float64]:
     return np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]], dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class _TagSpec:
+    marker_id: int
+    object_points: NDArray[np.float64]  # (4, 3) tag corners in the tag frame
+    bb_tag_mm: NDArray[np.float64]      # (3,) the central BB in the tag frame
+
+
 class VideoMarkerLocator:
-    """Localises the configured markers in drill-camera frames."""
+    """Localises the configured markers in drill-camera frames.
+
+    With ``marker_set`` (markers.json), every marker's own ArUco dictionary, ArUco id, tag size and tag
+    offset are used (the tag frame has the marker's axes, its origin at the marker's ``tag_center_mm``);
+    otherwise one ``dictionary``, ``tag_size_mm`` and ``tag_to_bb_offset_mm`` for ``marker_ids``, ArUco id =
+    marker id.
+    """
 
     def __init__(
         self,
@@ -104,52 +119,64 @@ class VideoMarkerLocator:
         dictionary: str = "DICT_6X6_250",
         corner_sigma_px: float = 0.1,
         detect_below_px: int = 800,
+        marker_set: MarkerSet | None = None,
     ) -> None:
         self.camera = camera
-        self.marker_ids = frozenset(int(i) for i in marker_ids)
-        self.tag_size_mm = float(tag_size_mm)
-        self.offset_mm = float(tag_to_bb_offset_mm)
         self.corner_sigma_px = float(corner_sigma_px)
-        self._detector = _detector(dictionary)
-        # Large frames are searched at half resolution (4x fewer pixels) and the corners refined at full resolution.
-        self._coarse = _detector(dictionary, refine=False)
         self.detect_below_px = detect_below_px
-        self._object = tag_object_points(self.tag_size_mm)
+        specs: dict[str, dict[int, _TagSpec]] = {}
+        if marker_set is not None:
+            for m in marker_set.markers:
+                per_dict = specs.setdefault(m.aruco_dictionary, {})
+                if m.aruco_id in per_dict:
+                    raise ValueError(f"markers {per_dict[m.aruco_id].marker_id} and {m.marker_id} share ArUco id {m.aruco_id} of {m.aruco_dictionary}")
+                per_dict[m.aruco_id] = _TagSpec(m.marker_id, tag_object_points(m.tag_size_mm), -np.asarray(m.tag_center_mm, dtype=np.float64))
+        else:
+            bb_tag = np.array([0.0, 0.0, -float(tag_to_bb_offset_mm)])
+            specs[dictionary] = {int(i): _TagSpec(int(i), tag_object_points(float(tag_size_mm)), bb_tag) for i in marker_ids}
+        self._specs = specs
+        self.marker_ids = frozenset(spec.marker_id for per in specs.values() for spec in per.values())
+        # Large frames are searched at half resolution (4x fewer pixels) and the corners refined at full resolution.
+        self._detectors = {name: (_detector(name), _detector(name, refine=False)) for name in specs}
 
     def locate(self, image: NDArray[np.uint8]) -> VideoDetections:
         gray = _gray(image)
         h, w = gray.shape
         if (w, h) != (self.camera.width, self.camera.height):
             raise ValueError(f"frame is {w}x{h} but the camera calibration is for {self.camera.width}x{self.camera.height}")
-        if w > self.detect_below_px:
-            small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-            corners, ids, _ = self._coarse.detectMarkers(small)
-            if ids is not None:
-                pts = np.concatenate([c.reshape(4, 2) for c in corners]) * 2.0 + 0.5
-                refined = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-                corners = [refined[4 * i : 4 * i + 4].reshape(1, 4, 2) for i in range(len(ids))]
-        else:
-            corners, ids, _ = self._detector.detectMarkers(gray)
+        small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA) if w > self.detect_below_px else None
         found: list[VideoMarker] = []
         ignored: list[int] = []
-        if ids is not None:
-            for marker_id, c in zip(ids.ravel().tolist(), corners):
-                if marker_id not in self.marker_ids:
-                    ignored.append(int(marker_id))
+        for name, (fine, coarse) in self._detectors.items():
+            if small is not None:
+                corners, ids, _ = coarse.detectMarkers(small)
+                if ids is not None:
+                    pts = np.concatenate([c.reshape(4, 2) for c in corners]) * 2.0 + 0.5
+                    refined = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+                    corners = [refined[4 * i : 4 * i + 4].reshape(1, 4, 2) for i in range(len(ids))]
+            else:
+                corners, ids, _ = fine.detectMarkers(gray)
+            if ids is None:
+                continue
+            for aruco_id, c in zip(ids.ravel().tolist(), corners):
+                spec = self._specs[name].get(int(aruco_id))
+                if spec is None:
+                    ignored.append(int(aruco_id))
                     continue
-                found.append(self._pose(int(marker_id), c.reshape(4, 2).astype(np.float64)))
+                found.append(self._pose(spec, c.reshape(4, 2).astype(np.float64)))
         return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h))
 
-    def _pose(self, marker_id: int, corners: NDArray[np.float64]) -> VideoMarker:
+    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64]) -> VideoMarker:
         k, dist = self.camera.camera_matrix, self.camera.distortion
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(self._object, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        obj = spec.object_points
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         best = int(np.argmin(np.asarray(errs).ravel()))
-        rvec, tvec = cv2.solvePnPRefineLM(self._object, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
+        rvec, tvec = cv2.solvePnPRefineLM(obj, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
         rot, _ = cv2.Rodrigues(rvec)
         camera_from_tag = make_transform(rot, tvec.ravel())
-        bb_tag = np.array([0.0, 0.0, -self.offset_mm])
+        bb_tag = spec.bb_tag_mm
         x_d = rot @ bb_tag + tvec.ravel()
-        proj, jac = cv2.projectPoints(self._object, rvec, tvec, k, dist)
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, k, dist)
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - corners) ** 2, axis=1))))
         # First-order covariance of the 6 pose parameters, pushed to X_D.
         j = jac[:, :6]
@@ -166,4 +193,4 @@ class VideoMarkerLocator:
             r2, _ = cv2.Rodrigues(dr)
             jx[:, i] = ((r2 @ bb_tag + dt) - x_d) / eps
         cov = jx @ cov_pose @ jx.T
-        return VideoMarker(marker_id=marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err)
+        return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err)

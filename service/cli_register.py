@@ -41,7 +41,7 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["read_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    video = VideoMarkerLocator(camera=camera, marker_ids=marker_set.ids, tag_size_mm=marker_set.markers[0].tag_size_mm).locate(frame)
+    video = VideoMarkerLocator(camera=camera, marker_set=marker_set).locate(frame)
     timings["video_markers_s"] = time.perf_counter() - t
     if not video.markers:
         raise MarkersNotFound(f"{args.video}: no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")

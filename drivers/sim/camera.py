@@ -18,14 +18,14 @@ from drillnav.registration.transforms import invert
 
 __all__ = ["render_markers", "tag_texture"]
 
-_TEXTURES: dict[tuple[int, int], NDArray[np.float32]] = {}
-TEXTURE_PX = 240  # texture pixels across the 30 mm tag
+_TEXTURES: dict[tuple[int, int, str], NDArray[np.float32]] = {}
+TEXTURE_PX = 240  # texture pixels across the tag
 
 
-def tag_texture(aruco_id: int, *, px: int = TEXTURE_PX) -> NDArray[np.float32]:
-    key = (aruco_id, px)
+def tag_texture(aruco_id: int, *, px: int = TEXTURE_PX, dictionary: str = "DICT_6X6_250") -> NDArray[np.float32]:
+    key = (aruco_id, px, dictionary)
     if key not in _TEXTURES:
-        d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
         _TEXTURES[key] = cv2.aruco.generateImageMarker(d, aruco_id, px).astype(np.float32)
     return _TEXTURES[key]
 
@@ -90,9 +90,9 @@ def render_markers(
             lam = (tag_z - o_m[2]) / d_m[:, 2]
         hit = o_m + lam[:, None] * d_m
         valid = (lam > 0) & np.isfinite(lam)
-        x, y = hit[:, 0], hit[:, 1]
+        x, y = hit[:, 0] - design.tag_center_mm[0], hit[:, 1] - design.tag_center_mm[1]
         half = design.tag_size_mm / 2.0
-        tex = tag_texture(design.aruco_id)
+        tex = tag_texture(design.aruco_id, dictionary=design.aruco_dictionary)
         # Texture coordinates: tag x right -> column, tag y up -> row decreasing.
         tu = ((x + half) / design.tag_size_mm * TEXTURE_PX - 0.5).astype(np.float32)
         tv = ((half - y) / design.tag_size_mm * TEXTURE_PX - 0.5).astype(np.float32)
