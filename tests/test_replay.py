@@ -128,7 +128,8 @@ def test_a_sigkill_cut_file_and_a_rotated_middle_file_replay_to_the_live_axes(tm
     ep = free_endpoint()
     child = None
     try:
-        with open_session(listen=[ep]) as source, open_session(connect=[ep]) as node_session, open_session(connect=[ep]) as rec_session:
+        # Clients of the source, which routes between them (connect-only peers listen nowhere, so do not meet).
+        with open_session(listen=[ep]) as source, open_session(mode="client", connect=[ep]) as node_session, open_session(mode="client", connect=[ep]) as rec_session:
             child = subprocess.Popen([sys.executable, "-c", KILLED_RECORDER, ep, str(tmp_path / "killed")], stdout=subprocess.PIPE, text=True)
             node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill)
             node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: live_axes.append(msg.decode_json(s.payload.to_bytes())))
