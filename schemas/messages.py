@@ -43,10 +43,12 @@ __all__ = [
     "ShotCounts",
     "Event",
     "FluoroShot",
+    "Projection",
     "FluoroMarkers",
     "MarkerPoseMsg",
     "compressed_image",
     "decode_compressed_image",
+    "parse_compressed_image",
     "encode_json",
     "decode_json",
     "protobuf_schema",
@@ -225,6 +227,20 @@ class Event(_Message):
 
 
 # -- fluoroscopy ----------------------------------------------------------------------------------
+PositiveFloat = Annotated[float, Field(gt=0)]
+Row3x4 = tuple[float, float, float, float]
+
+
+@dataclass(config=_CONFIG, kw_only=True)
+class Projection:
+    """drillnav.projection/1, as in ``projection.schema.json``: C (mm) to homogeneous pixel (column, row)."""
+
+    projection_matrix: tuple[Row3x4, Row3x4, Row3x4]
+    rows: int = Field(ge=1)
+    columns: int = Field(ge=1)
+    pixel_spacing_mm: tuple[PositiveFloat, PositiveFloat] = Field(description="(row, column) spacing at the detector")
+
+
 @_bind
 @dataclass(config=_CONFIG, kw_only=True)
 class FluoroShot(_Message):
@@ -233,7 +249,7 @@ class FluoroShot(_Message):
     schema_name = "drillnav.FluoroShot"
     stamp_ns: NonNegInt
     view: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$", description="the view's name; a newer shot of a view replaces the older")
-    projection: dict[str, Any] = Field(description="drillnav.projection/1: projection_matrix (3x4), rows, columns, pixel_spacing_mm")
+    projection: Projection
     png16_base64: str = Field(min_length=1)
     source_file: str = ""
 
@@ -258,12 +274,18 @@ class FluoroShot(_Message):
 
     @cached_property
     def carm_view(self) -> CArmView:
-        return view_from_json(self.projection, source="projection")
+        return view_from_json(_PROJECTION.dump_python(self.projection, mode="json"), source="projection")  # the camera model's own checks (a singular matrix)
 
     @classmethod
     def build(cls, image_log: NDArray[np.float32], view: CArmView, *, stamp_ns: int, view_name: str, source_file: str = "") -> FluoroShot:
         png = cv2.imencode(".png", np.clip(np.round(image_log * LOG_SCALE), 0, 65535).astype(np.uint16))[1].tobytes()
-        return cls(stamp_ns=int(stamp_ns), view=view_name, projection=view_to_json(view), png16_base64=base64.b64encode(png).decode(), source_file=source_file)
+        p = view_to_json(view)
+        projection = Projection(projection_matrix=tuple(tuple(row) for row in p["projection_matrix"]), rows=p["rows"], columns=p["columns"],
+                                pixel_spacing_mm=tuple(p["pixel_spacing_mm"]))
+        return cls(stamp_ns=int(stamp_ns), view=view_name, projection=projection, png16_base64=base64.b64encode(png).decode(), source_file=source_file)
+
+
+_PROJECTION = TypeAdapter(Projection)
 
 
 @dataclass(config=_CONFIG, kw_only=True)
@@ -332,8 +354,15 @@ def compressed_image(image: NDArray[np.uint8], *, stamp_ns: int, frame_id: str, 
     return msg.SerializeToString()
 
 
-def decode_compressed_image(data: bytes) -> tuple[NDArray[np.uint8], int, str]:
-    """``(image, stamp_ns, frame_id)``; ``ValueError`` for anything that is not a decodable, non-empty image."""
+_MAGIC = {"jpeg": (b"\xff\xd8",), "jpg": (b"\xff\xd8",), "png": (b"\x89PNG\r\n\x1a\n",)}
+
+
+def parse_compressed_image(data: bytes) -> CompressedImage:
+    """The envelope checked without decoding pixels (microseconds: fit for a subscriber's callback).
+
+    ``ValueError`` unless it parses as ``foxglove.CompressedImage`` with a known
+    format and data that starts as that format does.
+    """
     msg = CompressedImage()
     try:
         msg.ParseFromString(bytes(data))
@@ -341,9 +370,20 @@ def decode_compressed_image(data: bytes) -> tuple[NDArray[np.uint8], int, str]:
         raise ValueError(f"CompressedImage: not a protobuf message ({exc})") from None
     if not msg.data:
         raise ValueError("CompressedImage.data: empty")
+    magic = _MAGIC.get(msg.format.lower())
+    if magic is None:
+        raise ValueError(f"CompressedImage.format: '{msg.format[:20]}' is neither jpeg nor png")
+    if not msg.data.startswith(magic):
+        raise ValueError(f"CompressedImage.data: does not start as {msg.format} data does")
+    return msg
+
+
+def decode_compressed_image(data: bytes) -> tuple[NDArray[np.uint8], int, str]:
+    """``(image, stamp_ns, frame_id)``; ``ValueError`` for anything that is not a decodable, non-empty image."""
+    msg = parse_compressed_image(data)
     img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
-        raise ValueError(f"CompressedImage.data: no decodable {msg.format or 'image'} data")
+        raise ValueError(f"CompressedImage.data: no decodable {msg.format} data")
     return img, msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos, msg.frame_id
 
 

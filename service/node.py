@@ -176,15 +176,25 @@ class RegistrationNode:
 
     # -- inputs (zenoh's threads: only queue, never compute) --------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        try:
+            msg.parse_compressed_image(data)  # the envelope only: pixels are decoded in the frame loop, off zenoh's thread
+        except ValueError as exc:
+            self._refuse("camera_image", exc)
+            return
+        except Exception as exc:  # noqa: BLE001 - zenoh's callback thread must never see an exception
+            self._loop_error("camera callback", exc)
+            return
         self.counters.frames_received += 1
         self._last_frame_in_ns = time.monotonic_ns()
         with self._wake:
             if self._frame:
                 self.counters.frames_dropped += 1
-            self._frame.append(sample.payload.to_bytes())
+            self._frame.append(data)
             self._wake.notify_all()
 
     def _on_shot(self, sample: zenoh.Sample) -> None:
+        # Decoded in the shot loop (a PNG of a megapixel takes milliseconds): a newer shot of the same view counts the older superseded.
         self.counters.shots_received += 1
         with self._wake:
             if len(self._shots_in) >= MAX_PENDING_SHOTS:

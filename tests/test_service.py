@@ -40,8 +40,8 @@ def test_messages_round_trip():
     assert stamp == 1_700_000_000_123_456_789 and frame == "drill_camera"
     with pytest.raises(ValueError, match="malformed JSON"):
         msg.decode_json(b"{not json")
-    with pytest.raises(ValueError, match="missing 'projection'"):
-        msg.decode_fluoro_shot(msg.encode_json({"stamp_ns": 1, "view": "ap", "png16_base64": ""}))
+    with pytest.raises(ValueError, match=r"FluoroShot\.projection: Field required"):
+        msg.FluoroShot.from_bytes(msg.encode_json({"stamp_ns": 1, "view": "ap", "png16_base64": "AAAA"}))
     assert topic_for_key("drillnav", "drillnav/overlay/inlet").schema_name == "foxglove.CompressedImage"
 
 
@@ -152,9 +152,13 @@ class FakeState:
     def __init__(self):
         self.refreshed = 0
         self.recs = {}
+        self.unhealthy = None
 
     def status(self):
         return {"state": "registered"}
+
+    def health(self):
+        return self.unhealthy
 
     def registration(self):
         return None
@@ -202,6 +206,10 @@ def test_rest_api_over_http(http_server):
     auth = {"Authorization": "Bearer secret-token"}
     with httpx.Client(base_url=base, timeout=5) as c:
         assert c.get("/health").json() == {"status": "ok"}
+        state.unhealthy = "camera stalled: no frame for 3.0 s"
+        r = c.get("/health")
+        assert r.status_code == 503 and r.json()["detail"] == "camera stalled: no frame for 3.0 s"
+        state.unhealthy = None
         assert c.get("/registration").status_code == 404
         assert c.post("/registration/refresh").status_code == 401
         assert c.post("/registration/refresh", headers={"Authorization": "Bearer wrong-token"}).status_code == 403
