@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
+import re
 import socket
 import sys
 import threading
@@ -147,7 +148,8 @@ class Daemon:
         except ValueError as exc:
             raise StartupError(f"zenoh: {exc}") from None
         except Exception as exc:  # zenoh.ZError: an endpoint that does not parse, or a listen port taken
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = re.sub(r"\s+at \S+\.rs:\d+\.?", "", text)  # zenoh's Rust source locations say nothing to an operator
             raise StartupError(f"zenoh cannot open a session (listen {s.listen}, connect {s.connect}): {first}") from None
 
     def _devices(self) -> tuple[Any, LiveCalibration | None]:
