@@ -35,7 +35,6 @@ from drillnav.drivers.folder_watch import FolderWatcher
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.markers import default_marker_set
 from drillnav.registration.overlay import to_display
-from drillnav.registration.pipeline import LiveCalibration
 from drillnav.schemas import messages as msg
 from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
 from drillnav.schemas.markers import read_marker_set
@@ -116,9 +115,10 @@ class Daemon:
                                                     allowed_calling_aes=s.dicom.allowed_calling_aes))
             self.progress(f"DICOM up: C-STORE to AE {s.dicom.ae_title} at {s.dicom.scp_host}:{s.dicom.scp_port}")
         marker_set, calibration = self._devices()
-        self.node = stack.enter_context(RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, calibration=calibration,
+        self.node = stack.enter_context(RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, **calibration,
                                                          ct_tracker=self._ct_tracker()))
-        self.progress("registration node up" + ("" if calibration is not None else " (uncalibrated: install camera and drill calibrations to get an axis)"))
+        missing = [k for k, v in calibration.items() if v is None]
+        self.progress("registration node up" + (f" (uncalibrated: no {' and no '.join(missing)} calibration yet; no axis until installed)" if missing else ""))
         self._start_calibration_jobs(stack)
         self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
         if s.recording.record_on_start:
@@ -152,8 +152,8 @@ class Daemon:
             first = re.sub(r"\s+at \S+\.rs:\d+\.?", "", text)  # zenoh's Rust source locations say nothing to an operator
             raise StartupError(f"zenoh cannot open a session (listen {s.listen}, connect {s.connect}): {first}") from None
 
-    def _devices(self) -> tuple[Any, LiveCalibration | None]:
-        """The camera and C-arm devices; the marker set and the calibration (None: uncalibrated)."""
+    def _devices(self) -> tuple[Any, dict[str, Any]]:
+        """The camera and C-arm devices; the marker set and the calibration's ``camera`` and ``axis_drill`` (either None: not yet calibrated)."""
         s = self.settings
         if s.twin:
             from drillnav.drivers.sim.devices import TwinCArm, TwinDrillCamera
@@ -166,7 +166,7 @@ class Daemon:
             send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
             self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
             self.progress("digital twin up")
-            return marker_set, LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=marker_set)
+            return marker_set, {"camera": scene.calibrated_camera, "axis_drill": scene.calibrated_axis_drill}
         from drillnav.drivers.webcam import Webcam
 
         device = s.camera.device
@@ -176,13 +176,12 @@ class Daemon:
             marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
             cam_path = s.camera.calibration or self._active_calibration("camera")
             drill_path = s.camera.drill_calibration or self._active_calibration("drill")
-            calibration = None
-            if cam_path is not None and drill_path is not None:
-                calibration = LiveCalibration.build(camera=read_camera_calibration(cam_path), axis_drill=read_drill_calibration(drill_path), marker_set=marker_set)
+            camera = read_camera_calibration(cam_path) if cam_path is not None else None
+            axis = read_drill_calibration(drill_path) if drill_path is not None else None
         except (OSError, ValueError, DrillnavError) as exc:
             raise StartupError(f"calibration: {exc}") from None
         self.camera_device = Webcam(device=device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps, fourcc=s.camera.fourcc, exposure=s.camera.exposure)
-        return marker_set, calibration
+        return marker_set, {"camera": camera, "axis_drill": axis}
 
     def _active_calibration(self, kind: str) -> Path | None:
         """An installed calibration in ``calibration.folder`` (what a calibration job installed), if any."""

@@ -82,17 +82,18 @@ class _Shot:
 class RegistrationNode:
     """Use as a context manager: ``with RegistrationNode(session=..., ...) as node:``; threads run inside it.
 
-    ``calibration`` (or ``camera`` and ``axis_drill``) may be None: the node
-    then streams nothing until :meth:`install_calibration`.
+    ``calibration`` (or ``camera`` and ``axis_drill``) may be None, or only one
+    of the two given: the node then streams no axis until
+    :meth:`install_calibration` completes it.
     """
 
     def __init__(self, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet, calibration: LiveCalibration | None = None,
                  camera: PinholeCamera | None = None, axis_drill: Line3D | None = None, max_views: int = 2,
                  overlay_period_s: float = 0.5, ct_tracker=None, stall_s: float = 1.0, supervise_s: float = 0.25) -> None:
-        if calibration is None and (camera is None) != (axis_drill is None):
-            raise ValueError("camera and axis_drill come together (or neither: uncalibrated)")
-        if calibration is None and camera is not None:
+        if calibration is None and camera is not None and axis_drill is not None:
             calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set)
+        # One of the two alone waits for the other (install_calibration).
+        self._half_calibration: dict = {} if calibration is not None else {"camera": camera, "axis_drill": axis_drill}
         self.session, self.prefix = session, prefix
         self.ct_tracker = ct_tracker
         self.marker_set = marker_set
@@ -216,7 +217,7 @@ class RegistrationNode:
         With only one of the two and no calibration yet, it is kept until the other comes.
         """
         current = self.calibration
-        pending = getattr(self, "_half_calibration", {})
+        pending = self._half_calibration
         cam = camera if camera is not None else (current.camera if current is not None else pending.get("camera"))
         axis = axis_drill if axis_drill is not None else (current.axis_drill if current is not None else pending.get("axis_drill"))
         if cam is None or axis is None:
