@@ -5,7 +5,7 @@ stderr and exit status 1; SIGTERM or SIGINT at any moment (during start-up
 too) stops every part, finalises the recordings and exits 0. Output never
 stops the daemon: with stdout closed (``drillnav serve | head -1``) the lines
 are dropped. Under systemd (``Type=notify``) it sends ``READY=1`` once up,
-``WATCHDOG=1`` while healthy and ``STOPPING=1``.
+``WATCHDOG=1`` while not wedged (:meth:`Daemon.wedged`) and ``STOPPING=1``.
 """
 
 from __future__ import annotations
@@ -97,9 +97,8 @@ def _serve(args: argparse.Namespace) -> int:
             if not first_axis and daemon.node.counters.axes_published:
                 first_axis = True
                 say("first axis published")
-            health = daemon.health()
-            if period is not None and health is None:
-                sd_notify.notify("WATCHDOG=1")  # only while healthy: a wedged daemon misses its pings and is restarted
+            if period is not None and daemon.wedged() is None:
+                sd_notify.notify("WATCHDOG=1")  # only while not wedged: a stuck daemon misses its pings and is restarted
     except _Interrupted:
         pass
     except Exception as exc:  # noqa: BLE001 - whatever it was, the recordings are still finalised below

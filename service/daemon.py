@@ -330,17 +330,24 @@ class Daemon:
 
     # -- health ----------------------------------------------------------------------------
     def health(self) -> str | None:
-        """None when every stream the daemon should produce flows; else the reason (one line)."""
+        """None when every stream the daemon should produce flows; else the reason (one line). What ``/health`` says."""
         if not self.started:
             return "starting" if self._stack is None else "stopping"
+        now = time.monotonic_ns()
+        if now - self._last_frame_ns > int(self.stall_s * 1e9):
+            why = f" ({self.errors[-1]})" if self.errors else ""
+            return f"camera stalled: no frame for {(now - self._last_frame_ns) / 1e9:.1f} s{why}"
+        return self.wedged()
+
+    def wedged(self) -> str | None:
+        """The faults a restart can mend (a dead or stuck thread, a recorder that stopped), else None; what the watchdog reflects.
+
+        A camera that stops is not among them: the pump reopens it by itself, and a restart would only lose the registration.
+        """
         reason = self.node.health()
         if reason is not None:
             return reason
         now = time.monotonic_ns()
-        stall_ns = int(self.stall_s * 1e9)
-        if now - self._last_frame_ns > stall_ns:
-            why = f" ({self.errors[-1]})" if self.errors else ""
-            return f"camera stalled: no frame for {(now - self._last_frame_ns) / 1e9:.1f} s{why}"
         for t in self._threads:
             if not t.is_alive():
                 return f"daemon thread '{t.name}' is dead"
@@ -348,8 +355,8 @@ class Daemon:
             seen, since = self._recorder_seen.get(name, (-1, now))
             if rec.messages != seen:
                 self._recorder_seen[name] = (rec.messages, now)
-            elif now - since > stall_ns:
-                return f"recorder '{name}' stalled: nothing written for {(now - since) / 1e9:.1f} s while the camera streams"
+            elif now - since > int(self.stall_s * 1e9):
+                return f"recorder '{name}' stalled: nothing written for {(now - since) / 1e9:.1f} s"
         return None
 
     # -- ServiceState for the API ------------------------------------------------------------

@@ -1,5 +1,6 @@
 """The daemon on real devices (an MJPG file as the camera) starts uncalibrated, and camera calibrations installed through
-the REST API reach the node as one new bundle: the marker locator uses the new intrinsics (the stale-locator bug)."""
+the REST API reach the node as one new bundle: the marker locator uses the new intrinsics (the stale-locator bug).
+/health turns 503 while the camera is unplugged and 200 once it is back."""
 
 import time
 
@@ -64,3 +65,18 @@ def test_starts_uncalibrated_then_rest_installs_reach_the_locator(tmp_path):
         assert new is not bundle and new.locator is not bundle.locator
         assert new.locator.camera is new.camera and abs(new.locator.camera.camera_matrix[0, 0] / 620.0 - 1) < 0.01
         assert bundle.locator.camera.camera_matrix[0, 0] < 600  # the old bundle was not mutated under a frame that holds it
+
+        # Health reflects what a client sees: the camera unplugged is a 503 naming it (but not a wedge that the watchdog
+        # would restart the daemon for); re-plugged, 200 again.
+        device = tmp_path / "d" / "video0.avi"
+        device.rename(tmp_path / "d" / "unplugged.avi")
+        deadline = time.monotonic() + 15
+        while (r := client.get("/health")).status_code == 200 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert r.status_code == 503 and "camera stalled" in r.json()["detail"], r.text
+        assert d.wedged() is None
+        (tmp_path / "d" / "unplugged.avi").rename(device)
+        deadline = time.monotonic() + 15
+        while (r := client.get("/health")).status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert r.status_code == 200, r.text
