@@ -22,7 +22,6 @@ from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
-from annotated_types import Len
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
@@ -248,7 +247,8 @@ class FluoroShot(_Message):
 
     schema_name = "drillnav.FluoroShot"
     stamp_ns: NonNegInt
-    view: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$", description="the view's name; a newer shot of a view replaces the older")
+    # The name becomes a key expression (overlay/<view>): none of zenoh's special characters, no '/'.
+    view: str = Field(min_length=1, max_length=64, pattern=r"^[^/*$?#\s]+$", description="the view's name (e.g. p+0s-25); a newer shot of a view replaces the older")
     projection: Projection
     png16_base64: str = Field(min_length=1)
     source_file: str = ""

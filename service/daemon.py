@@ -306,7 +306,13 @@ class Daemon:
                 # A re-shot of the same view replaces the earlier shot of it in the node.
                 name = img.view_name
                 stamp = time.time_ns()
-                shot = msg.FluoroShot.build(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file)
+                try:
+                    shot = msg.FluoroShot.build(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file)
+                except ValueError as exc:
+                    reason = " ".join(str(exc).split())  # pydantic's report spans lines
+                    self.errors.append(f"{path}: {reason}")
+                    self._event("error", f"fluoroscopy refused: {path}: {reason}")
+                    continue
                 self.session.put(key(self.prefix, "fluoro_shot"), shot.to_bytes())
                 self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
 

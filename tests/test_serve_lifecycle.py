@@ -17,7 +17,6 @@ from pathlib import Path
 import cv2
 import httpx
 import numpy as np
-import pytest
 from mcap.reader import make_reader
 
 from drillnav.schemas.topics import key
@@ -26,21 +25,12 @@ from drillnav.service.bus import open_session
 from drillnav.service.replay import iter_recording
 
 from conftest import free_endpoint, free_port
+from file_camera import camera_file
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 EXIT_WITHIN_S = 5.0
 # Python's imports before the first line take seconds on a loaded 2-core machine; the bars count from the first line.
 FIRST_LINE_WITHIN_S = 90.0
-
-
-def camera_file(folder: Path) -> Path:
-    path = folder / "video0.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
-    assert writer.isOpened()
-    for i in range(30):
-        writer.write(np.full((240, 320, 3), 8 * i, np.uint8))
-    writer.release()
-    return path
 
 
 def config(folder: Path, *, twin: bool = False, **sections: str) -> Path:

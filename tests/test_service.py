@@ -247,17 +247,11 @@ def test_unplugged_camera_is_a_clear_error():
 
 def test_camera_unplugged_and_replugged_comes_back(tmp_path):
     """A real OpenCV capture on a file that stands in for the device node: it vanishes (unplug) and returns (re-plug)."""
-    import cv2
-
     from drillnav.drivers.webcam import Webcam
     from drillnav.service.camera_pump import CameraPump
+    from file_camera import camera_file
 
-    device = tmp_path / "video0.avi"
-    writer = cv2.VideoWriter(str(device), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
-    assert writer.isOpened()
-    for i in range(10):
-        writer.write(np.full((240, 320, 3), 20 * i, np.uint8))
-    writer.release()
+    device = camera_file(tmp_path, frames=10)
     frames, events, stop = [], [], threading.Event()
     pump = CameraPump(device=Webcam(device=str(device), reconnect_attempts=1, reconnect_interval_s=0.05), name=str(device),
                       on_frame=frames.append, on_event=lambda level, m: events.append((level, m)), stop=stop, retry_s=0.1)
