@@ -70,6 +70,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, on_signal)
+    daemon = None
     try:
         from .daemon import Daemon
         from .settings import load_settings
@@ -78,17 +79,20 @@ def _serve(args: argparse.Namespace) -> int:
         say(f"starting on {'the digital twin' if settings.twin else 'real devices'} ...")
         daemon = Daemon(settings, progress=say)
         daemon.__enter__()
+        starting = False  # from here a signal only sets `stop`
     except _Interrupted as exc:
+        if daemon is not None:
+            daemon.close()  # a no-op unless the signal came between start-up's end and the line above
         say(f"{exc.args[0]} during start-up: stopped")
         return 0
     except (DrillnavError, ValueError, OSError) as exc:
         _error(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         return EXIT_FAILURE
+    except Exception as exc:  # noqa: BLE001 - a fault start-up did not foresee is still one line, not a traceback
+        _error(f"unexpected {type(exc).__name__} during start-up: {str(exc).splitlines()[0] if str(exc) else ''}")
+        return EXIT_FAILURE
     rc = 0
     try:
-        starting = False
-        if stop.is_set():  # a signal in the last instant of start-up
-            raise _Interrupted("signal")
         _running(settings, say)
         sd_notify.notify("READY=1\nSTATUS=running")
         period = sd_notify.watchdog_period_s()
@@ -99,8 +103,6 @@ def _serve(args: argparse.Namespace) -> int:
                 say("first axis published")
             if period is not None and daemon.wedged() is None:
                 sd_notify.notify("WATCHDOG=1")  # only while not wedged: a stuck daemon misses its pings and is restarted
-    except _Interrupted:
-        pass
     except Exception as exc:  # noqa: BLE001 - whatever it was, the recordings are still finalised below
         _error(f"unexpected {type(exc).__name__}: {exc}")
         rc = EXIT_FAILURE

@@ -302,8 +302,9 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         with open_session(connect=[ep]) as s:
             s.declare_subscriber(key("drillnav", "axis_carm"), lambda smp: axes.append(msg.decode_json(smp.payload.to_bytes())))
             s.declare_subscriber(key("drillnav", "axis_ct"), lambda smp: axes_ct.append(msg.decode_json(smp.payload.to_bytes())))
-            deadline = time.monotonic() + 120
-            while time.monotonic() < deadline and (len(axes) < 10 or len(axes_ct) < 5):
+            # The twin builds its scene and CT up front: minutes on a loaded 2-core machine (faster start-up is another change).
+            deadline = time.monotonic() + 420
+            while time.monotonic() < deadline and (len(axes) < 10 or len(axes_ct) < 5) and proc.poll() is None:
                 time.sleep(0.2)
         assert len(axes) >= 10, "no drill axis streamed"
         # Live video-CT: the twin's CT registered to the shots, every axis carried into V with conformance to the nearest plan.
@@ -314,6 +315,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert np.linalg.norm(apply(np.asarray(c["carm_from_ct"]), entry_ct) - apply(truth.carm_from_ct, entry_ct)) < 1.0
         assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and isinstance(c["conformance"]["breach"], bool)
         a = axes[-1]
+        assert [x["sequence"] for x in axes[-5:]] == list(range(axes[-5]["sequence"], axes[-5]["sequence"] + 5)) and a["reliable"] is True
         assert a["frame_id"] == "carm" and abs(np.linalg.norm(a["direction"]) - 1) < 1e-6 and a["predicted_error"]["position_mm"] > 0
         status = httpx.get(f"{base}/status", timeout=5).json()
         assert status["state"] == "registered" and status["axes_published"] >= 10
@@ -351,7 +353,11 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert any("broken.dcm" in e for e in status["device_errors"])
     finally:
         proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=30)
+        try:
+            out, _ = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
     assert proc.returncode == 0, out
     (rec,) = list((tmp_path / "rec").glob("session-*.mcap"))
     with open(rec, "rb") as f:
