@@ -89,14 +89,17 @@ def main(argv: list[str] | None = None) -> int:
             st0 = httpx.get(f"{base}/status", timeout=10).json()
             t0 = time.monotonic()
             end = t0 + args.minutes * 60
-            views = st0["views"] or ["inlet", "outlet"]
+            views = [v.strip() for v in "inlet,outlet".split(",")]  # the twin's view names (its default [twin_scene] views)
+            marks: list[tuple[float, str]] = []  # (monotonic, what the soak did), to place the longest gap
             next_shot, next_garbage, installed = t0 + args.shot_every, t0 + 60.0, []
             installer = threading.Thread(target=lambda: installed.append(install_camera_calibration(base, args.seed)), daemon=True)
             shots = garbage_sent = 0
             while time.monotonic() < end:
                 now = time.monotonic()
                 if now >= next_shot:
-                    httpx.post(f"{base}/carm/shots", json={"view": views[shots % len(views)]}, headers=AUTH, timeout=30)
+                    r = httpx.post(f"{base}/carm/shots", json={"view": views[shots % len(views)]}, headers=AUTH, timeout=30)
+                    r.raise_for_status()
+                    marks.append((now, f"shot {views[shots % len(views)]}"))
                     shots += 1
                     next_shot += args.shot_every
                 if now >= next_garbage:
@@ -104,24 +107,30 @@ def main(argv: list[str] | None = None) -> int:
                         for p in payloads:
                             s.put(key("drillnav", topic), p)
                             garbage_sent += 1
+                    marks.append((now, "garbage on every input key"))
                     next_garbage += 60.0
                 if not installer.is_alive() and not installed and now >= t0 + (end - t0) / 2 and installer.ident is None:
                     installer.start()  # in a thread: the shots and garbage keep their cadence while the job computes
+                    marks.append((now, "calibration job submitted"))
                 time.sleep(0.2)
             st = httpx.get(f"{base}/status", timeout=10).json()
             rss_end = rss_mb(proc.pid)
         window = [t for t, _ in axes if t >= t0]
         gaps = np.diff(window) if len(window) > 1 else np.array([float("inf")])
         seqs = [q for t, q in axes if t >= t0]
+        worst = int(np.argmax(gaps)) if len(window) > 1 else 0
+        gap_at = window[worst] if window else t0
+        before = [f"{what} {gap_at - t:.1f} s before" for t, what in marks if 0 <= gap_at - t < 5.0]
         result = {
             "minutes": args.minutes, "first_axis_s": round(first_axis_s, 1),
             "frames_captured": st["frames_received"] - st0["frames_received"], "frames_on_bus_seen": frames_on_bus[0],
             "axes_published": st["axes_published"] - st0["axes_published"], "axes_received": len(window),
             "axis_sequence_gaps": int(sum(b - a - 1 for a, b in zip(seqs, seqs[1:]) if b > a + 1)),
             "longest_axis_gap_ms": round(float(gaps.max()) * 1000, 1), "axis_gap_p99_ms": round(float(np.percentile(gaps, 99)) * 1000, 1),
+            "longest_gap_at_s": round(gap_at - t0, 1), "longest_gap_after": before, "gaps_over_200ms": int(np.sum(gaps > 0.2)),
             "frames_dropped": st["frames_dropped"] - st0["frames_dropped"],
             "rss_mb_start": round(rss_start, 1), "rss_mb_end": round(rss_end, 1), "rss_growth_pct": round(100 * (rss_end / rss_start - 1), 1),
-            "shots_sent": shots, "shots": st["shots"], "registrations": st["registrations"] - st0["registrations"],
+            "shots_sent": shots, "shots": {k: st["shots"][k] - st0["shots"][k] for k in st["shots"]}, "registrations": st["registrations"] - st0["registrations"],
             "registration_failures": st["registration_failures"], "garbage_sent": garbage_sent, "bad_messages": st["bad_messages"],
             "thread_restarts": st["thread_restarts"], "loop_errors": st["loop_errors"], "events": len(events),
             "error_events": sum(e["level"] == "error" for e in events), "calibration_installed": installed[0] if installed else "not finished",

@@ -284,6 +284,7 @@ def test_camera_unplugged_and_replugged_comes_back(tmp_path):
     assert not t.is_alive()
 
 
+@pytest.mark.timeout(600)  # the twin's up-front build (scene and CT) takes minutes on a loaded machine
 def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     """The whole daemon in a subprocess: twin camera, C-arm shots through the watched folder, axis on zenoh, SIGTERM."""
     ep = endpoints()
