@@ -54,13 +54,13 @@ def main() -> None:
     defaults = RecordingSettings()
     with tempfile.TemporaryDirectory() as d, open_session() as bus:
         settings = defaults.model_copy(update={"folder": Path(d) / "defaults"})
-        node = RegistrationNode(session=bus, prefix=P, marker_set=product.marker_set, camera=product.calibrated_camera, axis_drill=product.calibrated_axis_drill)
+        node = RegistrationNode(session=bus, prefix=P, marker_set=product.marker_set, camera=product.calibrated_camera, axis_drill=product.calibrated_axis_drill).__enter__()
         new = Recorder.from_settings(settings, session=bus, prefix=P, name="defaults")
         old = Recorder(session=bus, prefix=P, folder=Path(d) / "old", name="old")
         bus.put(key(P, "calibration"), calibration_message_from_models(camera=product.calibrated_camera, axis_drill=product.calibrated_axis_drill,
                                                                        stamp_ns=time.time_ns(), marker_set=product.marker_set, source="twin"))
         for name in scene.views:
-            bus.put(key(P, "fluoro_shot"), msg.fluoro_shot(scene.fluoro_log[name], scene.views[name], stamp_ns=time.time_ns(), view_name=name))
+            bus.put(key(P, "fluoro_shot"), msg.FluoroShot.build(scene.fluoro_log[name], scene.views[name], stamp_ns=time.time_ns(), view_name=name).to_bytes())
         deadline = time.monotonic() + 60
         while node.counters.registrations < len(scene.views) and time.monotonic() < deadline:
             time.sleep(0.1)

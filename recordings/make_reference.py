@@ -29,7 +29,7 @@ def main() -> None:
         rec = Recorder(session=rec_session, prefix="drillnav", folder=OUT, name="twin-seed21")
         time.sleep(0.5)
         for name in scene.views:
-            pub.put(key("drillnav", "fluoro_shot"), msg.fluoro_shot(scene.fluoro_log[name], scene.views[name], stamp_ns=time.time_ns(), view_name=name))
+            pub.put(key("drillnav", "fluoro_shot"), msg.FluoroShot.build(scene.fluoro_log[name], scene.views[name], stamp_ns=time.time_ns(), view_name=name).to_bytes())
         time.sleep(1.5)  # the node registers before the camera starts
         with camera as cam:
             for _ in range(20):

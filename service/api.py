@@ -43,6 +43,7 @@ def running_recordings(state: Any) -> list[str]:
 class ServiceState(Protocol):
     token: str
 
+    def health(self) -> str | None: ...
     def status(self) -> dict[str, Any]: ...
     def registration(self) -> dict[str, Any] | None: ...
     def request_registration(self) -> None: ...
@@ -89,8 +90,12 @@ def create_app(*, state: ServiceState, settings: ApiSettings | None = None, audi
 
     authorized = [Depends(require_token)]
 
-    @app.get("/health")
+    @app.get("/health", responses={503: {"description": "a stream the daemon should produce has stalled; the detail says which"}})
     def health() -> dict[str, str]:
+        # What a client sees, not that the process exists: 503 while the axis, camera or recorder stream stalls.
+        reason = state.health()
+        if reason is not None:
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason)
         return {"status": "ok"}
 
     @app.get("/status")

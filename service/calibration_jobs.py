@@ -253,7 +253,12 @@ class CalibrationJobs:
             jobs = list(self._jobs.values())
         for job in jobs:
             job.cancel.set()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        # A job busy computing (a calibration solve) cannot see its cancel flag: it is not waited for beyond
+        # a short grace, so a stopping daemon finalises its recordings in time (the CLI then ends the process).
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + 1.0
+        for thread in list(getattr(self._pool, "_threads", ())):
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
         with self._lock:
             for job in jobs:
                 if not job.state.finished:

@@ -17,8 +17,7 @@ from drillnav.registration.errors import MarkersNotFound
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.overlay import draw_axis, draw_detections, mask_markers, to_display
-from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
-from drillnav.registration.video_markers import VideoMarkerLocator
+from drillnav.registration.pipeline import LiveCalibration, track_frame
 from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.markers import read_marker_set
@@ -40,11 +39,12 @@ def run_registration(args: argparse.Namespace) -> dict:
     images = [img for f in args.fluoro for img in read_fluoro(f)]
     timings["read_s"] = time.perf_counter() - t
 
+    calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set)
+    # The frame is tracked below by the node's own pipeline; looking for markers first gives the clear error before the fluoroscopy work.
     t = time.perf_counter()
-    video = VideoMarkerLocator(camera=camera, marker_set=marker_set).locate(frame)
-    timings["video_markers_s"] = time.perf_counter() - t
-    if not video.markers:
+    if not calibration.locator.locate(frame).markers:
         raise MarkersNotFound(f"{args.video}: no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
+    timings["video_markers_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1]) for img in images]
@@ -72,13 +72,9 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["marker_registration_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    reg = register_video_to_fluoro(video, poses, marker_set, camera)
+    fa = track_frame(frame, calibration=calibration, poses=poses, marker_set=marker_set)  # the node's pipeline, one home
     timings["video_to_fluoro_s"] = time.perf_counter() - t
-    axis_c = axis_drill.transformed(reg.carm_from_drill)
-    centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
-    work_point = axis_c.closest_point(centroid)
-    pe = predicted_axis_error(video, poses, reg, axis_drill, working_point_carm_mm=work_point)
-    axis_out = type(axis_c)(point_mm=work_point, direction=axis_c.direction)
+    video, reg, pe, axis_c, axis_out = fa.video, fa.registration, fa.predicted_error, fa.axis_full_carm, fa.axis_carm
 
     result = {
         "carm_from_drill": transform_to_json(reg.carm_from_drill),

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drillnav.drivers.ct_volume import read_ct
-from drillnav.registration.conformance import SurfaceDistance, conformance_along
+from drillnav.registration.conformance import Conformance, SurfaceDistance, conformance_along
 from drillnav.registration.ct_registration import CtRegistration, FluoroShot, register_ct
 from drillnav.registration.ct_views import PlannedTrajectory, compose_views, render_ct_views
 from drillnav.registration.errors import DrillnavError
@@ -26,7 +26,7 @@ from drillnav.registration.volume import Volume
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.scene_files import read_plan
 
-__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "acceptance_surface", "shots_for_ct", "plan_entries", "angle_and_offset", "CtModeError"]
+__all__ = ["PlanEntry", "load_plan", "initial_carm_from_ct", "register_ct_to_fluoro", "axis_in_ct_report", "acceptance_surface", "shots_for_ct", "plan_entries", "angle_and_offset", "CtModeError", "Judgement", "judge_conformance"]
 
 
 MAX_ANGLE_TO_JUDGE_DEG = 45.0
@@ -108,6 +108,66 @@ def angle_and_offset(axis_ct: Line3D, trajectory: PlannedTrajectory) -> tuple[fl
     return angle, float(axis_ct.distance_to_point(trajectory.entry_mm))
 
 
+@dataclass(frozen=True, kw_only=True)
+class Judgement:
+    """The axis against one planned trajectory: judged (``result``) when within ``MAX_ANGLE_TO_JUDGE_DEG`` of it, else why not."""
+
+    entry: PlanEntry
+    axis_to_planned_entry_mm: float
+    angle_to_plan_deg: float
+    result: Conformance | None
+    reason: str | None = None
+
+    @property
+    def trajectory(self) -> str:
+        return self.entry.trajectory.name
+
+    @property
+    def evaluated(self) -> bool:
+        return self.result is not None
+
+    @property
+    def breach(self) -> bool:
+        return bool(self.result is not None and self.result.breach)
+
+    @property
+    def min_clearance_mm(self) -> float | None:
+        if self.result is None or not np.isfinite(self.result.min_distance_mm):
+            return None
+        return float(self.result.min_distance_mm)
+
+    @property
+    def kwire_radius_mm(self) -> float:
+        return float(self.result.kwire_radius_mm) if self.result is not None else float("nan")
+
+
+def judge_conformance(ct: Volume, axis_ct: Line3D, plan: list[PlanEntry], cache: dict, *, nearest_only: bool = False) -> list[Judgement]:
+    """The one conformance judgement (the CLI and the live CT tracker both call it).
+
+    Each trajectory within ``MAX_ANGLE_TO_JUDGE_DEG`` of the axis is judged
+    along its acceptance surface; one further off is listed with the reason.
+    ``nearest_only``: only the judged trajectory nearest the axis (by distance
+    from its planned entry), or nothing (the live tracker, at camera rate).
+    """
+    rows = []
+    for entry in plan:
+        angle, offset = angle_and_offset(axis_ct, entry.trajectory)
+        rows.append((entry, angle, offset))
+    if nearest_only:
+        judged = [r for r in rows if r[1] <= MAX_ANGLE_TO_JUDGE_DEG]
+        rows = [min(judged, key=lambda r: r[2])] if judged else []
+    out = []
+    for entry, angle, offset in rows:
+        t = entry.trajectory
+        if angle > MAX_ANGLE_TO_JUDGE_DEG:
+            out.append(Judgement(entry=entry, axis_to_planned_entry_mm=offset, angle_to_plan_deg=angle, result=None,
+                                 reason=f"the axis is {angle:.0f} deg off this trajectory (judged within {MAX_ANGLE_TO_JUDGE_DEG:.0f} deg)"))
+        else:
+            c = conformance_along(axis_ct, acceptance_surface(ct, entry, cache), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
+            out.append(Judgement(entry=entry, axis_to_planned_entry_mm=offset, angle_to_plan_deg=angle, result=c))
+    return out
+
+
 def axis_in_ct_report(
     ct: Volume,
     reg: CtRegistration,
@@ -131,16 +191,13 @@ def axis_in_ct_report(
         "conformance": [],
     }
     centre = axis_ct.point_mm
-    cache: dict = {}
-    for entry in plan or []:
-        t = entry.trajectory
-        angle, offset = angle_and_offset(axis_ct, t)
-        row: dict[str, Any] = {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle}
-        if angle > MAX_ANGLE_TO_JUDGE_DEG:
-            row.update(evaluated=False, reason=f"the axis is {angle:.0f} deg off this trajectory (judged within {MAX_ANGLE_TO_JUDGE_DEG:.0f} deg)")
+    for j in judge_conformance(ct, axis_ct, plan or [], {}):
+        row: dict[str, Any] = {"trajectory": j.trajectory, "axis_to_planned_entry_mm": j.axis_to_planned_entry_mm, "angle_to_plan_deg": j.angle_to_plan_deg}
+        if not j.evaluated:
+            row.update(evaluated=False, reason=j.reason)
         else:
-            c = conformance_along(axis_ct, acceptance_surface(ct, entry, cache), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
-            row.update(evaluated=True, breach=c.breach, min_clearance_mm=c.min_distance_mm if np.isfinite(c.min_distance_mm) else None,
+            c = j.result
+            row.update(evaluated=True, breach=j.breach, min_clearance_mm=j.min_clearance_mm,
                        kwire_radius_mm=c.kwire_radius_mm, entry_ct_mm=None if c.entry_mm is None else [float(v) for v in c.entry_mm],
                        breach_at_mm=[float(v) for v in c.breach_along_mm[:50]],
                        along_mm=[round(float(v), 2) for v in c.along_mm[::2]], clearance_mm=[round(float(v), 2) for v in c.distance_mm[::2]])

@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from drillnav.registration.conformance import conformance_along
 from drillnav.registration.ct_registration import CtRegistration, register_ct
 from drillnav.registration.drr import drr_pyramid
 from drillnav.registration.errors import DrillnavError
@@ -38,7 +37,9 @@ from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
 from drillnav.registration.volume import Volume
 
-from .ct_mode import MAX_ANGLE_TO_JUDGE_DEG, PlanEntry, acceptance_surface, angle_and_offset, initial_carm_from_ct, shots_for_ct
+from drillnav.schemas import messages as msg
+
+from .ct_mode import PlanEntry, acceptance_surface, initial_carm_from_ct, judge_conformance, shots_for_ct
 
 __all__ = ["CtTracker"]
 
@@ -74,7 +75,7 @@ class CtTracker:
         self._pending: tuple[list, int] | None = None
         self._lock = threading.Condition()
         self._stop = threading.Event()
-        self._conf: dict[str, Any] | None = None
+        self._conf: msg.Conformance | None = None
         self._conf_time = 0.0
         self._conf_registration = -1
         self._thread = threading.Thread(target=self._loop, name="ct-registration", daemon=True)
@@ -159,8 +160,9 @@ class CtTracker:
         return value
 
     # -- per camera frame ----------------------------------------------------------------------------
-    def axis_message(self, axis_carm: Line3D, *, stamp_ns: int, source_frame_stamp_ns: int, predicted_error: dict[str, float]) -> dict[str, Any] | None:
-        """The ``drillnav.DrillAxis`` message in frame V (None before the first CT registration)."""
+    def axis_message(self, axis_carm: Line3D, *, stamp_ns: int, source_frame_stamp_ns: int, predicted_error: msg.PredictedError,
+                     registration_id: int, sequence: int) -> msg.DrillAxis | None:
+        """The drill axis in frame V (None before the first CT registration)."""
         if self._current is None:
             return None
         reg, ct_from_carm = self._current
@@ -169,29 +171,20 @@ class CtTracker:
         if self._conf is None or self._conf_registration != self.registration_id or now - self._conf_time > self.conformance_period_s:
             self._conf = self._conformance(axis_ct)
             self._conf_time, self._conf_registration = now, self.registration_id
-        doc: dict[str, Any] = {
-            "stamp_ns": stamp_ns, "frame_id": "ct", "point_mm": axis_ct.point_mm.tolist(), "direction": axis_ct.direction.tolist(),
-            "predicted_error": dict(predicted_error), "source_frame_stamp_ns": source_frame_stamp_ns,
-            "ct_registration_id": self.registration_id, "ct_similarity_gc": reg.similarity, "carm_from_ct": reg.carm_from_ct.tolist(),
-        }
-        if self._conf is not None:
-            doc["conformance"] = self._conf
-        return doc
+        return msg.DrillAxis(
+            stamp_ns=stamp_ns, frame_id="ct", **msg.drill_axis_fields(point_mm=axis_ct.point_mm, direction=axis_ct.direction, carm_from_ct=reg.carm_from_ct),
+            predicted_error=predicted_error, source_frame_stamp_ns=source_frame_stamp_ns, registration_id=registration_id, sequence=sequence,
+            ct_registration_id=self.registration_id, ct_similarity_gc=float(reg.similarity), conformance=self._conf,
+        )
 
-    def _conformance(self, axis_ct: Line3D) -> dict[str, Any] | None:
+    def _conformance(self, axis_ct: Line3D) -> msg.Conformance | None:
         """Against the nearest trajectory within the judged angle (None when none is)."""
-        best = None
-        for entry in self.plan:
-            angle, offset = angle_and_offset(axis_ct, entry.trajectory)
-            if angle <= MAX_ANGLE_TO_JUDGE_DEG and (best is None or offset < best[0]):
-                best = (offset, angle, entry)
-        if best is None:
+        judged = judge_conformance(self.ct, axis_ct, self.plan, self._surfaces, nearest_only=True)
+        if not judged:
             return None
-        offset, angle, entry = best
-        t = entry.trajectory
-        c = conformance_along(axis_ct, acceptance_surface(self.ct, entry, self._surfaces), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
-        return {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle, "breach": bool(c.breach),
-                "min_clearance_mm": float(c.min_distance_mm) if np.isfinite(c.min_distance_mm) else None, "kwire_radius_mm": c.kwire_radius_mm}
+        j = judged[0]
+        return msg.Conformance(trajectory=j.trajectory, axis_to_planned_entry_mm=j.axis_to_planned_entry_mm, angle_to_plan_deg=j.angle_to_plan_deg,
+                               breach=j.breach, min_clearance_mm=j.min_clearance_mm, kwire_radius_mm=j.kwire_radius_mm)
 
     def status(self) -> dict[str, Any]:
         reg = self.registration
@@ -202,7 +195,7 @@ class CtTracker:
         self._stop.set()
         with self._lock:
             self._lock.notify_all()
-        self._thread.join(timeout=30)
+        self._thread.join(timeout=2)  # a daemon thread: the exit does not wait on a registration
         if self._worker is not None:
             if self._worker.is_alive():
                 self._worker.terminate()  # a registration mid-way has nothing worth keeping

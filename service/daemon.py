@@ -1,16 +1,34 @@
-"""The daemon: bus, camera, C-arm intake, registration node, recorder and REST API, stopped gracefully."""
+"""The daemon: bus, camera, C-arm intake, registration node, recorder and REST API, as one context manager.
+
+``with Daemon(settings) as d:`` starts every part through one
+``contextlib.ExitStack``; a failure anywhere in start-up closes what was
+already started and raises :class:`StartupError` (one line naming the
+problem), and leaving the block stops everything in reverse order, with the
+recordings finalised. What can fail fast (zenoh, the REST and DICOM ports,
+the camera device, the calibration files) is tried before what is slow (the
+digital twin, the CT).
+
+On real devices the daemon starts without calibrations when none is
+configured: the camera streams, the status says ``uncalibrated`` and no axis
+is published, so a live calibration job can run first; installing both
+calibrations (REST) starts the axis.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import gc
+import os
+import re
+import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import uvicorn
 
 from drillnav.drivers.fluoro_dicom import read_fluoro
 from drillnav.drivers.folder_watch import FolderWatcher
@@ -22,75 +40,95 @@ from drillnav.schemas.calibration import read_camera_calibration, read_drill_cal
 from drillnav.schemas.markers import read_marker_set
 from drillnav.schemas.topics import TOPICS, key
 
-from .api import create_app
 from .bus import open_session
-from .calibration_jobs import CalibrationJobs
 from .camera_pump import CameraPump
 from .node import RegistrationNode
 from .recorder import Recorder
-from .settings import Settings, SettingsError
+from .settings import Settings
 
-__all__ = ["Daemon"]
+__all__ = ["Daemon", "StartupError"]
+
+
+class StartupError(DrillnavError):
+    """The daemon could not start; the message names the part and the problem (one line)."""
 
 
 class Daemon:
-    """Owns every running part; ``start()`` then ``stop()`` (or ``run(stop_event)``)."""
+    """Owns every running part. ``with Daemon(settings, progress=print) as d: ...``."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, *, progress: Callable[[str], None] = lambda line: None, stall_s: float = 2.0) -> None:
         self.settings = settings
         self.token = settings.api.token
         self.prefix = settings.zenoh.prefix
+        self.progress = progress
+        self.stall_s = stall_s
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._recorders: dict[str, Recorder] = {}
         self._finished: dict[str, list[str]] = {}
         self.errors: list[str] = []
         self.carm = None
-        self.calibration_jobs: CalibrationJobs | None = None
+        self.calibration_jobs = None
+        self.scp = None
+        self.pump: CameraPump | None = None
         self._frame_lock = threading.Condition()
         self._latest_frame: tuple[int, Any] | None = None
+        self._last_frame_ns = 0  # monotonic, camera loop
+        self._recorder_seen: dict[str, tuple[int, int]] = {}  # name -> (messages, monotonic ns when it last grew)
+        self._stack: contextlib.ExitStack | None = None
+        self.started = False
 
     # -- lifecycle -------------------------------------------------------------------------
-    def start(self) -> None:
+    def __enter__(self) -> Daemon:
+        with contextlib.ExitStack() as stack:
+            stack.callback(self._stop.set)  # registered first, runs last: every loop sees it
+            self._start(stack)
+            self._stack = stack.pop_all()
+        self.started = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.started = False
+        if self._stack is not None:
+            stack, self._stack = self._stack, None
+            stack.close()
+
+    def _start(self, stack: contextlib.ExitStack) -> None:
         s = self.settings
-        self.session = open_session(mode=s.zenoh.mode, listen=s.zenoh.listen, connect=s.zenoh.connect, multicast_scouting=s.zenoh.multicast_scouting)
-        s.dicom.watch_folder.mkdir(parents=True, exist_ok=True)
-        if s.twin:
-            from drillnav.drivers.sim.devices import TwinCArm, TwinDrillCamera
-            from drillnav.drivers.sim.scene import make_scene
-
-            scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
-            marker_set, camera, axis = scene.marker_set, scene.calibrated_camera, scene.calibrated_axis_drill
-            self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed)
-            send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
-            self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
-        else:
-            from drillnav.drivers.webcam import Webcam
-
-            if s.camera.calibration is None or s.camera.drill_calibration is None:
-                raise SettingsError("camera.calibration and camera.drill_calibration must name camera.json and drill.json (run the calibrations first)")
-            marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
-            camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
-            self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps,
-                                        fourcc=s.camera.fourcc, exposure=s.camera.exposure)
-        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis, ct_tracker=self._ct_tracker())
-        cal = s.calibration.folder
-        self.calibration_jobs = CalibrationJobs(
-            work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
-            active_camera_path=s.camera.calibration or cal / "camera.json", active_drill_path=s.camera.drill_calibration or cal / "drill.json")
-        self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
-        self.scp = None
+        self.session = stack.enter_context(self._open_session())
+        self.progress(f"zenoh up ({s.zenoh.mode}, listening on {', '.join(s.zenoh.listen) or '(none)'})")
+        stack.callback(self._close_recorders)  # after the session's subscribers are gone: registered after it, runs before
+        api_socket = _bind("REST API", s.api.host, s.api.port)  # bound now: a taken port fails in a second, not after the twin
+        stack.callback(api_socket.close)
+        try:
+            s.dicom.watch_folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StartupError(f"dicom.watch_folder {s.dicom.watch_folder}: {exc.strerror}") from None
         if s.dicom.scp_enabled:
             from drillnav.drivers.dicom_scp import StoreScp
 
             # Received images land in the watched folder, fsynced before they are acknowledged.
-            self.scp = StoreScp(ae_title=s.dicom.ae_title, port=s.dicom.scp_port, host=s.dicom.scp_host, storage_dir=s.dicom.watch_folder, allowed_calling_aes=s.dicom.allowed_calling_aes).__enter__()
+            self.scp = stack.enter_context(StoreScp(ae_title=s.dicom.ae_title, port=s.dicom.scp_port, host=s.dicom.scp_host, storage_dir=s.dicom.watch_folder,
+                                                    allowed_calling_aes=s.dicom.allowed_calling_aes))
+            self.progress(f"DICOM up: C-STORE to AE {s.dicom.ae_title} at {s.dicom.scp_host}:{s.dicom.scp_port}")
+        marker_set, calibration = self._devices()
+        self.node = stack.enter_context(RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, **calibration,
+                                                         ct_tracker=self._ct_tracker()))
+        missing = [k for k, v in calibration.items() if v is None]
+        self.progress("registration node up" + (f" (uncalibrated: no {' and no '.join(missing)} calibration yet; no axis until installed)" if missing else ""))
+        self._start_calibration_jobs(stack)
+        self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
         if s.recording.record_on_start:
             self.start_recording("session")
+            self.progress(f"recording into {s.recording.folder}/")
+        stack.callback(self._join_threads)
         self._spawn(self._camera_loop, "camera")
         self._spawn(self._dicom_loop, "dicom")
-        self._server = uvicorn.Server(uvicorn.Config(create_app(state=self), host=s.api.host, port=s.api.port, log_level="warning"))
-        self._spawn(self._server.run, "api")
+        self._start_api(stack, api_socket)
+        self.progress(f"REST up on http://{s.api.host}:{api_socket.getsockname()[1]}")
         # Everything built so far (libraries, the twin, the CT) lives as long as the daemon. Out of the
         # collector's sight, its full collections scan only what came after: ~100 ms pauses every
         # half minute, which cost camera frames, become ~1 ms ones.
@@ -103,17 +141,101 @@ class Daemon:
             for view in self.carm.scene.views:
                 self.carm.shoot(view)
 
+    def _open_session(self):
+        s = self.settings.zenoh
+        try:
+            return open_session(mode=s.mode, listen=s.listen, connect=s.connect, multicast_scouting=s.multicast_scouting)
+        except ValueError as exc:
+            raise StartupError(f"zenoh: {exc}") from None
+        except Exception as exc:  # zenoh.ZError: an endpoint that does not parse, or a listen port taken
+            text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = re.sub(r"\s+at \S+\.rs:\d+\.?", "", text)  # zenoh's Rust source locations say nothing to an operator
+            raise StartupError(f"zenoh cannot open a session (listen {s.listen}, connect {s.connect}): {first}") from None
+
+    def _devices(self) -> tuple[Any, dict[str, Any]]:
+        """The camera and C-arm devices; the marker set and the calibration's ``camera`` and ``axis_drill`` (either None: not yet calibrated)."""
+        s = self.settings
+        if s.twin:
+            from drillnav.drivers.sim.devices import TwinCArm, TwinDrillCamera
+            from drillnav.drivers.sim.scene import make_scene
+
+            self.progress("building the digital twin ...")
+            scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
+            marker_set = scene.marker_set
+            self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed)
+            send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
+            self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
+            self.progress("digital twin up")
+            return marker_set, {"camera": scene.calibrated_camera, "axis_drill": scene.calibrated_axis_drill}
+        from drillnav.drivers.webcam import Webcam
+
+        device = s.camera.device
+        if device.startswith("/dev/") and not os.path.exists(device):
+            raise StartupError(f"camera.device {device} does not exist (is the camera plugged in?)")
+        try:
+            marker_set = read_marker_set(s.markers_file) if s.markers_file else default_marker_set()
+            cam_path = s.camera.calibration or self._active_calibration("camera")
+            drill_path = s.camera.drill_calibration or self._active_calibration("drill")
+            camera = read_camera_calibration(cam_path) if cam_path is not None else None
+            axis = read_drill_calibration(drill_path) if drill_path is not None else None
+        except (OSError, ValueError, DrillnavError) as exc:
+            raise StartupError(f"calibration: {exc}") from None
+        self.camera_device = Webcam(device=device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps, fourcc=s.camera.fourcc, exposure=s.camera.exposure)
+        return marker_set, {"camera": camera, "axis_drill": axis}
+
+    def _active_calibration(self, kind: str) -> Path | None:
+        """An installed calibration in ``calibration.folder`` (what a calibration job installed), if any."""
+        path = self.settings.calibration.folder / f"{kind}.json"
+        return path if path.exists() else None
+
+    def _start_calibration_jobs(self, stack: contextlib.ExitStack) -> None:
+        from .calibration_jobs import CalibrationJobs
+
+        s, cal = self.settings, self.settings.calibration.folder
+        self.calibration_jobs = stack.enter_context(CalibrationJobs(
+            work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
+            active_camera_path=s.camera.calibration or cal / "camera.json", active_drill_path=s.camera.drill_calibration or cal / "drill.json"))
+
+    def _start_api(self, stack: contextlib.ExitStack, api_socket: socket.socket) -> None:
+        """uvicorn on the socket bound at start; start-up counts as done only once it says ``started``."""
+        import uvicorn
+
+        from .api import create_app
+
+        server = uvicorn.Server(uvicorn.Config(create_app(state=self), log_level="warning", lifespan="off"))
+        server.install_signal_handlers = lambda: None  # signals belong to the CLI: uvicorn runs in a thread
+        self._server = server
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [api_socket]}, name="api", daemon=True)
+
+        def stop_api() -> None:
+            server.should_exit = True
+            thread.join(timeout=3)
+
+        thread.start()
+        stack.callback(stop_api)
+        deadline = time.monotonic() + 10
+        while not server.started:
+            if not thread.is_alive() or time.monotonic() > deadline:
+                raise StartupError(f"REST API did not start on {self.settings.api.host}:{self.settings.api.port}")
+            time.sleep(0.01)
+
     def _ct_tracker(self):
         """The live video-CT mode: from ``[ct] volume`` (and ``plan``), or the twin's own CT; None when off."""
+        s = self.settings
+        if s.ct.volume is None and not (s.twin and s.twin_scene.ct_voxel_mm):
+            return None
         from drillnav.drivers.ct_volume import read_ct
 
         from .ct_mode import load_plan, plan_entries
         from .ct_tracker import CtTracker
 
-        s = self.settings
+        self.progress("loading the CT ...")
         if s.ct.volume is not None:
-            ct, plan = read_ct(s.ct.volume), (load_plan(s.ct.plan) if s.ct.plan else [])
-        elif s.twin and s.twin_scene.ct_voxel_mm:
+            try:
+                ct, plan = read_ct(s.ct.volume), (load_plan(s.ct.plan) if s.ct.plan else [])
+            except (OSError, ValueError, DrillnavError) as exc:
+                raise StartupError(f"ct: {exc}") from None
+        else:
             from drillnav.drivers.sim import anatomy
             from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
             from drillnav.schemas.scene_files import plan_to_json
@@ -121,48 +243,35 @@ class Daemon:
             v = s.twin_scene.ct_voxel_mm
             ct = make_pelvis_ct(seed=s.twin_scene.seed, voxel_mm=(v, v, v))
             plan = plan_entries(plan_to_json(anatomy.CORRIDORS), base=Path.cwd())  # the twin's plan.json, as sim scene writes it
-        else:
-            return None
         at = np.asarray(s.ct.at_mm, dtype=np.float64) if s.ct.at_mm is not None else None
-        return CtTracker(ct=ct, plan=plan, at_isocentre_mm=at, on_event=self._event)
+        tracker = CtTracker(ct=ct, plan=plan, at_isocentre_mm=at, on_event=self._event)
+        self.progress("CT up")
+        return tracker
 
     def _event(self, level: str, message: str) -> None:
-        self.session.put(key(self.prefix, "events"), msg.encode_json({"stamp_ns": time.time_ns(), "level": level, "message": message}))
+        self.session.put(key(self.prefix, "events"), msg.Event(stamp_ns=time.time_ns(), level=level, message=message).to_bytes())
 
     def _spawn(self, target, name: str) -> None:
         t = threading.Thread(target=target, name=name, daemon=True)
         t.start()
         self._threads.append(t)
 
-    def stop(self) -> None:
+    def _join_threads(self) -> None:
         self._stop.set()
-        if hasattr(self, "_server"):
-            self._server.should_exit = True
+        deadline = time.monotonic() + 2.0  # daemon threads: the exit does not wait on a wedged device read
         for t in self._threads:
-            t.join(timeout=5)
-        if getattr(self, "scp", None) is not None:
-            self.scp.__exit__(None, None, None)
-        if self.calibration_jobs is not None:
-            self.calibration_jobs.close()
-        if hasattr(self, "node"):
-            self.node.close()
+            t.join(timeout=max(0.0, deadline - time.monotonic()))
+
+    def _close_recorders(self) -> None:
         for name in list(self._recorders):
             self.stop_recording(name)
-        if hasattr(self, "session"):
-            self.session.close()
-
-    def run(self, stop_event: threading.Event) -> None:
-        self.start()
-        try:
-            stop_event.wait()
-        finally:
-            self.stop()
 
     # -- loops -----------------------------------------------------------------------------
     def _camera_loop(self) -> None:
         pub = self.session.declare_publisher(key(self.prefix, "camera_image"))
 
         def on_frame(frame) -> None:
+            self._last_frame_ns = time.monotonic_ns()
             with self._frame_lock:
                 self._latest_frame = (frame.stamp_ns, frame.image)
                 self._frame_lock.notify_all()
@@ -173,24 +282,39 @@ class Daemon:
                 self.errors.append(message)
             self._event(level, message)
 
-        CameraPump(device=self.camera_device, name=str(self.settings.camera.device) if not self.settings.twin else "twin",
-                   on_frame=on_frame, on_event=on_event, stop=self._stop, retry_s=self.settings.camera.retry_s).run()
+        self.pump = CameraPump(device=self.camera_device, name=str(self.settings.camera.device) if not self.settings.twin else "twin",
+                               on_frame=on_frame, on_event=on_event, stop=self._stop, retry_s=self.settings.camera.retry_s)
+        self.pump.run()
 
     def _dicom_loop(self) -> None:
         while not self._stop.is_set():
-            for path in self.watcher.wait(0.5):
+            try:
+                self._take_dicom(self.watcher.wait(0.5))
+            except Exception as exc:  # noqa: BLE001 - the intake survives what it did not foresee
+                self.errors.append(f"DICOM intake: {type(exc).__name__}: {exc}")
+                self._event("error", f"DICOM intake: unexpected {type(exc).__name__}: {exc}")
+
+    def _take_dicom(self, paths) -> None:
+        for path in paths:
+            try:
+                images = read_fluoro(path)
+            except DrillnavError as exc:
+                self.errors.append(str(exc))
+                self._event("error", f"fluoroscopy refused: {exc}")
+                continue
+            for img in images:
+                # A re-shot of the same view replaces the earlier shot of it in the node.
+                name = img.view_name
+                stamp = time.time_ns()
                 try:
-                    images = read_fluoro(path)
-                except DrillnavError as exc:
-                    self.errors.append(str(exc))
-                    self._event("error", f"fluoroscopy refused: {exc}")
+                    shot = msg.FluoroShot.build(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file)
+                except ValueError as exc:
+                    reason = " ".join(str(exc).split())  # pydantic's report spans lines
+                    self.errors.append(f"{path}: {reason}")
+                    self._event("error", f"fluoroscopy refused: {path}: {reason}")
                     continue
-                for img in images:
-                    # A re-shot of the same view replaces the earlier shot of it in the node.
-                    name = img.view_name
-                    stamp = time.time_ns()
-                    self.session.put(key(self.prefix, "fluoro_shot"), msg.fluoro_shot(img.pixels_log, img.view, stamp_ns=stamp, view_name=name, source_file=img.source_file))
-                    self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+                self.session.put(key(self.prefix, "fluoro_shot"), shot.to_bytes())
+                self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
 
     # -- calibration jobs ------------------------------------------------------------------
     def _grab_frame(self, timeout_s: float = 2.0) -> tuple[int, Any]:
@@ -203,24 +327,56 @@ class Daemon:
             return self._latest_frame
 
     def _install_calibration(self, kind: str, path) -> None:
-        """A calibration installed through the API becomes the node's at once."""
+        """A calibration installed through the API becomes the node's at once: one new bundle (camera, axis, locator)."""
         if kind == "camera":
-            self.node.camera = read_camera_calibration(path)
+            bundle = self.node.install_calibration(camera=read_camera_calibration(path))
         else:
-            self.node.axis_drill = read_drill_calibration(path)
-        self._event("info", f"{kind} calibration installed from {path}")
+            bundle = self.node.install_calibration(axis_drill=read_drill_calibration(path))
+        self._event("info", f"{kind} calibration installed from {path}" + ("" if bundle is not None else "; still uncalibrated: the other calibration is missing"))
+
+    # -- health ----------------------------------------------------------------------------
+    def health(self) -> str | None:
+        """None when every stream the daemon should produce flows; else the reason (one line). What ``/health`` says."""
+        if not self.started:
+            return "starting" if self._stack is None else "stopping"
+        now = time.monotonic_ns()
+        if now - self._last_frame_ns > int(self.stall_s * 1e9):
+            why = f" ({self.errors[-1]})" if self.errors else ""
+            return f"camera stalled: no frame for {(now - self._last_frame_ns) / 1e9:.1f} s{why}"
+        return self.wedged()
+
+    def wedged(self) -> str | None:
+        """The faults a restart can mend (a dead or stuck thread, a recorder that stopped), else None; what the watchdog reflects.
+
+        A camera that stops is not among them: the pump reopens it by itself, and a restart would only lose the registration.
+        """
+        reason = self.node.health()
+        if reason is not None:
+            return reason
+        now = time.monotonic_ns()
+        for t in self._threads:
+            if not t.is_alive():
+                return f"daemon thread '{t.name}' is dead"
+        for name, rec in list(self._recorders.items()):
+            seen, since = self._recorder_seen.get(name, (-1, now))
+            if rec.messages != seen:
+                self._recorder_seen[name] = (rec.messages, now)
+            elif now - since > int(self.stall_s * 1e9):
+                return f"recorder '{name}' stalled: nothing written for {(now - since) / 1e9:.1f} s"
+        return None
 
     # -- ServiceState for the API ------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        st = self.node.status()
+        st = self.node.status().to_dict()
         st.update({"twin": self.settings.twin, "recordings": list(self._recorders), "device_errors": self.errors[-5:],
                    "topics": {n: key(self.prefix, n, "<view>") if "*" in t.suffix else key(self.prefix, n) for n, t in TOPICS.items()}})
         return st
 
     def registration(self) -> dict[str, Any] | None:
-        if self.node.last_axis is None:
+        axis, axis_ct = self.node.last_axis, self.node.last_axis_ct
+        if axis is None:
             return None
-        return {**self.node.last_axis, "axis_ct": self.node.last_axis_ct} if self.node.last_axis_ct is not None else self.node.last_axis
+        return {**axis.to_dict(), "axis_ct": axis_ct.to_dict()} if axis_ct is not None else axis.to_dict()
 
     def request_registration(self) -> None:
         self.node.request_registration()
@@ -237,6 +393,7 @@ class Daemon:
         if name not in self._recorders:
             raise KeyError(f"no running recording named '{name}'")
         files = [str(p) for p in self._recorders.pop(name).close()]
+        self._recorder_seen.pop(name, None)
         self._finished[name] = files
         return files
 
@@ -251,3 +408,20 @@ class Daemon:
         return str(self.carm.shoot(view))
 
 
+def _bind(what: str, host: str, port: int) -> socket.socket:
+    """A listening TCP socket, or a :class:`StartupError` naming ``what`` and the address."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise StartupError(f"{what}: cannot resolve host '{host}' ({exc.strerror})") from None
+    family, _, _, _, addr = infos[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+        sock.listen(128)
+    except OSError as exc:
+        sock.close()
+        raise StartupError(f"{what}: cannot listen on {host}:{port}: {exc.strerror}") from None
+    sock.set_inheritable(True)
+    return sock

@@ -277,7 +277,8 @@ class IgtlServer:
 
     def _on_shot(self, sample: zenoh.Sample) -> None:
         try:
-            image, view, stamp, name = msg.decode_fluoro_shot(sample.payload.to_bytes())
+            shot = msg.FluoroShot.from_bytes(sample.payload.to_bytes())
+            image, view, stamp, name = shot.image_log, shot.carm_view, shot.stamp_ns, shot.view
             m = igtl.fluoro_image_message(image, view, device=f"Fluoro-{name}"[:20], stamp_ns=stamp)
         except ValueError:
             self.counters.decode_errors += 1

@@ -132,7 +132,8 @@ def replay_node(path: str | Path, *, session: zenoh.Session, prefix: str, marker
             camera = camera if camera is not None else cal.camera
             axis_drill = axis_drill if axis_drill is not None else cal.axis_drill
             marker_set = marker_set if marker_set is not None else cal.marker_set
-    return RegistrationNode(session=session, prefix=prefix, marker_set=marker_set or default_marker_set(), camera=camera, axis_drill=axis_drill)
+    # Entered (its workers running); the caller closes it.
+    return RegistrationNode(session=session, prefix=prefix, marker_set=marker_set or default_marker_set(), camera=camera, axis_drill=axis_drill).__enter__()
 
 
 def replay(path: str | Path, session: zenoh.Session, *, rate: float = 1.0, stop: threading.Event | None = None, state_settle_s: float = 0.0) -> ReplayResult:

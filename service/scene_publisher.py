@@ -140,7 +140,8 @@ class ScenePublisher:
         self._put(key(self.prefix, "scene_tf"), tf.SerializeToString(), latch=fox.FRAME_CT)
 
     def _on_shot(self, data: bytes) -> None:
-        _, view, stamp, name = msg.decode_fluoro_shot(data)
+        shot = msg.FluoroShot.from_bytes(data)
+        view, stamp, name = shot.carm_view, shot.stamp_ns, shot.view
         cal, carm_from_source = fox.view_calibration(view, view_name=name, stamp_ns=stamp)
         with self._lock:
             self._views[name] = view

@@ -176,6 +176,12 @@ class CtSettings(_Section):
     at_mm: tuple[float, float, float] | None = None  # the CT point the C-arm is centred on (default: the plan's first entry)
 
 
+class RegistrationSettings(_Section):
+    # An axis whose predicted error's 90 % bound exceeds either limit is published with reliable = false (displays grey it out).
+    unreliable_position_mm: float = Field(3.0, gt=0, description="limit on the 90 % position bound at the working point, mm")
+    unreliable_angle_deg: float = Field(3.0, gt=0, description="limit on the 90 % angle bound, degrees")
+
+
 class IgtlSettings(_Section):
     """OpenIGTLink for 3D Slicer (service/igtl_server.py, docs/slicer.md)."""
     enabled: bool = False
@@ -214,6 +220,7 @@ class Settings(BaseSettings):
     twin_scene: TwinSettings = Field(default_factory=TwinSettings)
     calibration: CalibrationSettings = Field(default_factory=CalibrationSettings)
     ct: CtSettings = Field(default_factory=CtSettings)
+    registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
     igtl: IgtlSettings = Field(default_factory=IgtlSettings)
     foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
     ros2: Ros2Settings = Field(default_factory=Ros2Settings)

@@ -12,6 +12,7 @@ from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import apply
+from drillnav.schemas import messages as msg
 from drillnav.schemas.scene_files import plan_to_json
 from drillnav.service.ct_mode import plan_entries
 from drillnav.service.ct_tracker import CtTracker
@@ -23,6 +24,8 @@ def wait_for(cond, timeout: float) -> bool:
         time.sleep(0.05)
     return cond()
 
+PE = msg.PredictedError(position_mm=1.0, angle_deg=0.5)
+
 
 def test_tracker_registers_in_its_worker_and_survives_the_worker_s_death():
     scene = make_scene(seed=5, views="inlet,outlet")
@@ -33,14 +36,14 @@ def test_tracker_registers_in_its_worker_and_survives_the_worker_s_death():
     entry = np.asarray(anatomy.CORRIDORS[0].entry_mm)
     try:
         axis_carm = Line3D(point_mm=apply(scene.carm_from_ct, [entry])[0], direction=[0.0, 0.0, 1.0])
-        assert tracker.axis_message(axis_carm, stamp_ns=1, source_frame_stamp_ns=1, predicted_error={}) is None  # nothing before the first registration
+        assert tracker.axis_message(axis_carm, stamp_ns=1, source_frame_stamp_ns=1, predicted_error=PE, registration_id=1, sequence=0) is None  # nothing before the first registration
         tracker.submit(shots, 1)
         assert wait_for(lambda: tracker.registration_id == 1, 120), events
         assert tracker.worker_pid not in (None, os.getpid())
         err = np.linalg.norm(apply(tracker.registration.carm_from_ct, [entry])[0] - apply(scene.carm_from_ct, [entry])[0])
         assert err < 1.0
-        doc = tracker.axis_message(axis_carm, stamp_ns=2, source_frame_stamp_ns=1, predicted_error={"position_mm": 1.0})
-        assert doc["frame_id"] == "ct" and np.linalg.norm(np.asarray(doc["point_mm"]) - entry) < 1.0
+        doc = tracker.axis_message(axis_carm, stamp_ns=2, source_frame_stamp_ns=1, predicted_error=PE, registration_id=1, sequence=1)
+        assert doc.frame_id == "ct" and np.linalg.norm(np.asarray(doc.point_mm) - entry) < 1.0
         # The worker killed in the middle of the next registration: reported, the last result kept.
         tracker.submit(shots, 2)
         assert wait_for(lambda: tracker.busy, 5)
@@ -49,7 +52,7 @@ def test_tracker_registers_in_its_worker_and_survives_the_worker_s_death():
         os.kill(pid, signal.SIGKILL)
         assert wait_for(lambda: tracker.failures == 1, 30), events
         assert "worker died (exit code -9)" in tracker.last_error and tracker.registration_id == 1
-        assert tracker.axis_message(axis_carm, stamp_ns=3, source_frame_stamp_ns=1, predicted_error={}) is not None
+        assert tracker.axis_message(axis_carm, stamp_ns=3, source_frame_stamp_ns=1, predicted_error=PE, registration_id=1, sequence=2) is not None
         # The next shot starts a new worker.
         tracker.submit(shots, 3)
         assert wait_for(lambda: tracker.registration_id == 2, 120), events

@@ -184,7 +184,7 @@ def test_recording_and_live_websocket_carry_the_scene(tmp_path):
     ep, ws_port = free_endpoint(), free_port()
     client = None
     with open_session(listen=[ep]) as player, open_session(connect=[ep]) as s:
-        node = RegistrationNode(session=s, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill)
+        node = RegistrationNode(session=s, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill).__enter__()
         recorder = Recorder(session=s, prefix="drillnav", folder=tmp_path, name="fox")
         try:
             with FoxgloveBridge(session=s, prefix="drillnav", port=ws_port) as bridge, \

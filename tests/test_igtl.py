@@ -149,7 +149,7 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
     client = None
     with open_session(listen=[ep]) as player, open_session(connect=[ep]) as node_session:
         node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
-                                axis_drill=scene.calibrated_axis_drill)
+                                axis_drill=scene.calibrated_axis_drill).__enter__()
         try:
             axis_arrivals = []
             node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: (axes.append(msg.decode_json(s.payload.to_bytes())), axis_arrivals.append(time.monotonic())))

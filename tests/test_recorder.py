@@ -78,7 +78,7 @@ def test_camera_frames_at_the_set_rate_and_quality_everything_else_in_full(tmp_p
 
 def test_every_new_file_starts_with_the_state_to_replay_it_alone(tmp_path):
     scene = make_scene(seed=3, render=False)
-    shot = {v: msg.fluoro_shot(np.full((64, 64), 0.5, np.float32), scene.views[v], stamp_ns=i, view_name=v) for i, v in enumerate(scene.views)}
+    shot = {v: msg.FluoroShot.build(np.full((scene.views[v].rows, scene.views[v].columns), 0.5, np.float32), scene.views[v], stamp_ns=i, view_name=v).to_bytes() for i, v in enumerate(scene.views)}
     cal = calibration_message_from_models(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, stamp_ns=1, marker_set=scene.marker_set, source="twin")
     ep = free_endpoint()
     with open_session(listen=[ep]) as a, open_session(connect=[ep]) as b:
@@ -224,7 +224,7 @@ def test_a_recording_started_mid_case_carries_what_came_before_it(tmp_path):
         subs = carried.subscribe(b)
         time.sleep(0.5)
         a.put(key(P, "calibration"), cal)
-        a.put(key(P, "fluoro_shot"), msg.fluoro_shot(np.full((8, 8), 0.5, np.float32), scene.views["inlet"], stamp_ns=2, view_name="inlet"))
+        a.put(key(P, "fluoro_shot"), msg.FluoroShot.build(np.full((scene.views["inlet"].rows, scene.views["inlet"].columns), 0.5, np.float32), scene.views["inlet"], stamp_ns=2, view_name="inlet").to_bytes())
         a.put(key(P, "fluoro_image", "inlet"), msg.compressed_image(np.zeros((8, 8), np.uint8), stamp_ns=2, frame_id="carm/inlet", fmt="png"))
         a.put(key(P, "axis_carm"), msg.encode_json({"stamp_ns": 3}))  # not state
         _wait(lambda: len(carried.messages()) == 3)

@@ -37,13 +37,12 @@ def test_replay_through_the_node_matches_truth():
     truth, axes = {}, []
     ep = free_endpoint()
     with open_session(listen=[ep]) as player, open_session(connect=[ep]) as node_session:
-        node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill)
-        node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
-        node_session.declare_subscriber(key("drillnav", "twin_truth"), lambda s: truth.__setitem__((d := msg.decode_json(s.payload.to_bytes()))["frame_stamp_ns"], d))
-        time.sleep(0.5)
-        n = replay(RECORDING, player, rate=1.0)
-        time.sleep(1.0)
-        node.close()
+        with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill) as node:
+            node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
+            node_session.declare_subscriber(key("drillnav", "twin_truth"), lambda s: truth.__setitem__((d := msg.decode_json(s.payload.to_bytes()))["frame_stamp_ns"], d))
+            time.sleep(0.5)
+            n = replay(RECORDING, player, rate=1.0)
+            time.sleep(1.0)
     assert n.messages == 42 and n.cut is None
     matched = [(a, truth[a["source_frame_stamp_ns"]]) for a in axes if a["source_frame_stamp_ns"] in truth]
     assert len(matched) >= 15, f"only {len(matched)} axes matched a recorded frame (status {node.status()})"
@@ -131,7 +130,7 @@ def test_a_sigkill_cut_file_and_a_rotated_middle_file_replay_to_the_live_axes(tm
         # Clients of the source, which routes between them (connect-only peers listen nowhere, so do not meet).
         with open_session(listen=[ep]) as source, open_session(mode="client", connect=[ep]) as node_session, open_session(mode="client", connect=[ep]) as rec_session:
             child = subprocess.Popen([sys.executable, "-c", KILLED_RECORDER, ep, str(tmp_path / "killed")], stdout=subprocess.PIPE, text=True)
-            node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill)
+            node = RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill).__enter__()
             node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: live_axes.append(msg.decode_json(s.payload.to_bytes())))
             rec = Recorder(session=rec_session, prefix="drillnav", folder=tmp_path / "rotated", name="live", rotate_bytes=400_000)
             assert int(child.stdout.readline()) == 0  # the child records

@@ -40,8 +40,8 @@ def test_messages_round_trip():
     assert stamp == 1_700_000_000_123_456_789 and frame == "drill_camera"
     with pytest.raises(ValueError, match="malformed JSON"):
         msg.decode_json(b"{not json")
-    with pytest.raises(ValueError, match="missing 'projection'"):
-        msg.decode_fluoro_shot(msg.encode_json({"stamp_ns": 1, "view": "ap", "png16_base64": ""}))
+    with pytest.raises(ValueError, match=r"FluoroShot\.projection: Field required"):
+        msg.FluoroShot.from_bytes(msg.encode_json({"stamp_ns": 1, "view": "ap", "png16_base64": "AAAA"}))
     assert topic_for_key("drillnav", "drillnav/overlay/inlet").schema_name == "foxglove.CompressedImage"
 
 
@@ -152,9 +152,13 @@ class FakeState:
     def __init__(self):
         self.refreshed = 0
         self.recs = {}
+        self.unhealthy = None
 
     def status(self):
         return {"state": "registered"}
+
+    def health(self):
+        return self.unhealthy
 
     def registration(self):
         return None
@@ -202,6 +206,10 @@ def test_rest_api_over_http(http_server):
     auth = {"Authorization": "Bearer secret-token"}
     with httpx.Client(base_url=base, timeout=5) as c:
         assert c.get("/health").json() == {"status": "ok"}
+        state.unhealthy = "camera stalled: no frame for 3.0 s"
+        r = c.get("/health")
+        assert r.status_code == 503 and r.json()["detail"] == "camera stalled: no frame for 3.0 s"
+        state.unhealthy = None
         assert c.get("/registration").status_code == 404
         assert c.post("/registration/refresh").status_code == 401
         assert c.post("/registration/refresh", headers={"Authorization": "Bearer wrong-token"}).status_code == 403
@@ -239,17 +247,11 @@ def test_unplugged_camera_is_a_clear_error():
 
 def test_camera_unplugged_and_replugged_comes_back(tmp_path):
     """A real OpenCV capture on a file that stands in for the device node: it vanishes (unplug) and returns (re-plug)."""
-    import cv2
-
     from drillnav.drivers.webcam import Webcam
     from drillnav.service.camera_pump import CameraPump
+    from file_camera import camera_file
 
-    device = tmp_path / "video0.avi"
-    writer = cv2.VideoWriter(str(device), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
-    assert writer.isOpened()
-    for i in range(10):
-        writer.write(np.full((240, 320, 3), 20 * i, np.uint8))
-    writer.release()
+    device = camera_file(tmp_path, frames=10)
     frames, events, stop = [], [], threading.Event()
     pump = CameraPump(device=Webcam(device=str(device), reconnect_attempts=1, reconnect_interval_s=0.05), name=str(device),
                       on_frame=frames.append, on_event=lambda level, m: events.append((level, m)), stop=stop, retry_s=0.1)
@@ -282,6 +284,7 @@ def test_camera_unplugged_and_replugged_comes_back(tmp_path):
     assert not t.is_alive()
 
 
+@pytest.mark.timeout(600)  # the twin's up-front build (scene and CT) takes minutes on a loaded machine
 def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     """The whole daemon in a subprocess: twin camera, C-arm shots through the watched folder, axis on zenoh, SIGTERM."""
     ep = endpoints()
@@ -300,8 +303,9 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         with open_session(connect=[ep]) as s:
             s.declare_subscriber(key("drillnav", "axis_carm"), lambda smp: axes.append(msg.decode_json(smp.payload.to_bytes())))
             s.declare_subscriber(key("drillnav", "axis_ct"), lambda smp: axes_ct.append(msg.decode_json(smp.payload.to_bytes())))
-            deadline = time.monotonic() + 120
-            while time.monotonic() < deadline and (len(axes) < 10 or len(axes_ct) < 5):
+            # The twin builds its scene and CT up front: minutes on a loaded 2-core machine (faster start-up is another change).
+            deadline = time.monotonic() + 420
+            while time.monotonic() < deadline and (len(axes) < 10 or len(axes_ct) < 5) and proc.poll() is None:
                 time.sleep(0.2)
         assert len(axes) >= 10, "no drill axis streamed"
         # Live video-CT: the twin's CT registered to the shots, every axis carried into V with conformance to the nearest plan.
@@ -312,6 +316,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert np.linalg.norm(apply(np.asarray(c["carm_from_ct"]), entry_ct) - apply(truth.carm_from_ct, entry_ct)) < 1.0
         assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and isinstance(c["conformance"]["breach"], bool)
         a = axes[-1]
+        assert [x["sequence"] for x in axes[-5:]] == list(range(axes[-5]["sequence"], axes[-5]["sequence"] + 5)) and a["reliable"] is True
         assert a["frame_id"] == "carm" and abs(np.linalg.norm(a["direction"]) - 1) < 1e-6 and a["predicted_error"]["position_mm"] > 0
         status = httpx.get(f"{base}/status", timeout=5).json()
         assert status["state"] == "registered" and status["axes_published"] >= 10
@@ -349,10 +354,17 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert any("broken.dcm" in e for e in status["device_errors"])
     finally:
         proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=30)
+        try:
+            out, _ = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
     assert proc.returncode == 0, out
-    (rec,) = list((tmp_path / "rec").glob("session-*.mcap"))
-    with open(rec, "rb") as f:
-        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    recs = sorted((tmp_path / "rec").glob("session-*.mcap"))  # more than one when a slow start-up made it rotate (512 MB)
+    assert recs
+    topics = set()
+    for rec in recs:
+        with open(rec, "rb") as f:
+            topics |= {c.topic for c in make_reader(f).get_summary().channels.values()}
     assert {"drillnav/camera/image", "drillnav/axis/carm", "drillnav/axis/ct", "drillnav/fluoro/shot"} <= topics, topics
     assert sum(t.startswith("drillnav/overlay/") for t in topics) >= 2, topics
