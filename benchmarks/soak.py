@@ -32,7 +32,7 @@ from drillnav.service.bus import open_session
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from twin_images import board_views  # noqa: E402  (the calibration tests' own board renderer)
 
-TOKEN = "soak-token-1"
+TOKEN = "soak-token-1-of-16-chars"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 

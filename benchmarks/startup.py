@@ -59,7 +59,7 @@ def first_axis(folder: Path, numba_cache: Path, *, ct: bool, timeout_s: float) -
     api_port, dicom_port = free_port(), free_port()
     conf = folder / "drillnav.toml"
     conf.write_text(
-        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "startup-bench"\n'
+        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "startup-bench-token-16"\n'
         f'[dicom]\nwatch_folder = "{folder / "in"}"\nscp_port = {dicom_port}\n[recording]\nfolder = "{folder / "rec"}"\n'
         f'[calibration]\nfolder = "{folder / "cal"}"\n' + ("[twin_scene]\nct_voxel_mm = 2.0\n" if ct else ""))
     got = threading.Event()

@@ -44,6 +44,7 @@ __all__ = [
     "FluoroShot",
     "Projection",
     "FluoroMarkers",
+    "AuditEntry",
     "MarkerPoseMsg",
     "compressed_image",
     "decode_compressed_image",
@@ -311,7 +312,19 @@ class FluoroMarkers(_Message):
     markers: tuple[MarkerPoseMsg, ...]
 
 
-MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers)
+@_bind
+@dataclass(config=_CONFIG, kw_only=True)
+class AuditEntry(_Message):
+    """Who changed what through the REST API (also appended to the audit log file), on ``audit``."""
+
+    schema_name = "drillnav.AuditEntry"
+    stamp_ns: NonNegInt
+    actor: str = Field(description="the client address (and what authenticated it)")
+    action: str = Field(min_length=1, description="e.g. calibration_installed, recording_started, shot_requested, auth_failed")
+    detail: dict[str, Any] = Field(default_factory=dict)
+
+
+MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers, AuditEntry)
 
 JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     **{c.schema_name: c.json_schema() for c in MESSAGE_CLASSES},

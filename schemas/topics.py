@@ -44,6 +44,7 @@ TOPICS: dict[str, Topic] = {
     "scene_calibration": Topic("scene/calibration/*", "foxglove.CameraCalibration", Encoding.PROTOBUF, "a pinhole model per C-arm view (from its P) and for drill_camera"),
     "scene_annotations": Topic("scene/annotations/*", "foxglove.ImageAnnotations", Encoding.PROTOBUF, "the axis, its cone and the markers projected onto each C-arm view"),
     "scene_log": Topic("scene/log", "foxglove.Log", Encoding.PROTOBUF, "registration events as log lines"),
+    "audit": Topic("audit", "drillnav.AuditEntry", Encoding.JSON, "who changed what through the REST API (calibration installed, recording started, shot requested, failed authentications)"),
     "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
 }
 

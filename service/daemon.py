@@ -17,6 +17,7 @@ calibrations (REST) starts the axis.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gc
 import os
 import re
@@ -29,9 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from drillnav.drivers.fluoro_dicom import read_fluoro
-from drillnav.drivers.folder_watch import FolderWatcher
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.markers import default_marker_set
 from drillnav.registration.overlay import to_display
@@ -43,7 +44,7 @@ from drillnav.schemas.topics import TOPICS, key
 from .bus import open_session
 from .camera_pump import CameraPump
 from .node import RegistrationNode
-from .recorder import Recorder
+from .recorder import CarriedState, Recorder
 from .settings import Settings
 
 __all__ = ["Daemon", "StartupError"]
@@ -58,7 +59,7 @@ class Daemon:
 
     def __init__(self, settings: Settings, *, progress: Callable[[str], None] = lambda line: None, stall_s: float = 2.0) -> None:
         self.settings = settings
-        self.token = settings.api.token
+        self.token = settings.api.token or ""  # resolved (the twin's random one) at start: see _start
         self.prefix = settings.zenoh.prefix
         self.progress = progress
         self.stall_s = stall_s
@@ -70,6 +71,8 @@ class Daemon:
         self.carm = None
         self.calibration_jobs = None
         self.scp = None
+        self.intake = self.audit = self.carried = None
+        self.scene_publisher = self.igtl = None  # set by _start_interop when enabled
         self.pump: CameraPump | None = None
         self._frame_lock = threading.Condition()
         self._latest_frame: tuple[int, Any] | None = None
@@ -98,29 +101,48 @@ class Daemon:
 
     def _start(self, stack: contextlib.ExitStack) -> None:
         s = self.settings
+        from .auth import resolve_token
+
+        try:
+            self.token = resolve_token(s)  # none on a real device: refused; the twin makes a random one and prints it once
+        except DrillnavError as exc:
+            raise StartupError(str(exc)) from None
         self.session = stack.enter_context(self._open_session())
         self.progress(f"zenoh up ({s.zenoh.mode}, listening on {', '.join(s.zenoh.listen) or '(none)'})")
+        # The latest state (calibration, shots, markers, status) from start-up on, so a recording begun mid-case
+        # starts with what it needs to replay alone.
+        self.carried = CarriedState(prefix=self.prefix)
+        for sub in self.carried.subscribe(self.session):
+            stack.callback(sub.undeclare)
+        from .audit import AuditLog
+
+        self.audit = AuditLog(folder=s.api.audit_folder, on_entry=self._publish_audit)
+        stack.callback(self.audit.close)
         stack.callback(self._close_recorders)  # after the session's subscribers are gone: registered after it, runs before
         api_socket = _bind("REST API", s.api.host, s.api.port)  # bound now: a taken port fails in a second, not after the twin
         stack.callback(api_socket.close)
-        try:
-            s.dicom.watch_folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StartupError(f"dicom.watch_folder {s.dicom.watch_folder}: {exc.strerror}") from None
-        if s.dicom.scp_enabled:
-            from drillnav.drivers.dicom_scp import StoreScp
+        from .dicom_intake import DicomIntake
 
-            # Received images land in the watched folder, fsynced before they are acknowledged.
-            self.scp = stack.enter_context(StoreScp(ae_title=s.dicom.ae_title, port=s.dicom.scp_port, host=s.dicom.scp_host, storage_dir=s.dicom.watch_folder,
-                                                    allowed_calling_aes=s.dicom.allowed_calling_aes))
-            self.progress(f"DICOM up: C-STORE to AE {s.dicom.ae_title} at {s.dicom.scp_host}:{s.dicom.scp_port}")
+        # The C-STORE SCP (received images fsynced into the watched folder before they are acknowledged), the
+        # folder watcher with its journal of processed files, and the retention of incoming images.
+        try:
+            self.intake = stack.enter_context(DicomIntake(settings=s.dicom, on_error=self._intake_error))
+        except OSError as exc:
+            raise StartupError(f"dicom.watch_folder {s.dicom.watch_folder}: {exc.strerror or exc}") from None
+        self.scp = self.intake.scp
+        if self.scp is not None:
+            self.progress(f"DICOM up: C-STORE to AE {s.dicom.ae_title} at {s.dicom.scp_host}:{s.dicom.scp_port}" + (" (TLS)" if s.dicom.tls_cert else ""))
         marker_set, calibration = self._devices()
+        from drillnav.registration.pipeline import ReliableLimits
+
+        limits = ReliableLimits(position_mm=s.registration.unreliable_position_mm, angle_deg=s.registration.unreliable_angle_deg)
         self.node = stack.enter_context(RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, **calibration,
-                                                         ct_tracker=self._ct_tracker()))
+                                                         ct_tracker=self._ct_tracker(), reliable_limits=limits))
+        self._publish_calibration()
+        self._start_interop(stack, axis_drill=calibration["axis_drill"], camera=calibration["camera"])
         missing = [k for k, v in calibration.items() if v is None]
         self.progress("registration node up" + (f" (uncalibrated: no {' and no '.join(missing)} calibration yet; no axis until installed)" if missing else ""))
         self._start_calibration_jobs(stack)
-        self.watcher = FolderWatcher(folder=s.dicom.watch_folder)
         if s.recording.record_on_start:
             self.start_recording("session")
             self.progress(f"recording into {s.recording.folder}/")
@@ -144,8 +166,8 @@ class Daemon:
     def _open_session(self):
         s = self.settings.zenoh
         try:
-            return open_session(mode=s.mode, listen=s.listen, connect=s.connect, multicast_scouting=s.multicast_scouting)
-        except ValueError as exc:
+            return open_session(s)  # TLS, authentication and access control from [zenoh] (docs/security.md)
+        except (ValueError, DrillnavError) as exc:
             raise StartupError(f"zenoh: {exc}") from None
         except Exception as exc:  # zenoh.ZError: an endpoint that does not parse, or a listen port taken
             text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -194,15 +216,17 @@ class Daemon:
         s, cal = self.settings, self.settings.calibration.folder
         self.calibration_jobs = stack.enter_context(CalibrationJobs(
             work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
-            active_camera_path=s.camera.calibration or cal / "camera.json", active_drill_path=s.camera.drill_calibration or cal / "drill.json"))
+            active_camera_path=s.camera.calibration or cal / "camera.json", active_drill_path=s.camera.drill_calibration or cal / "drill.json",
+            max_active=s.api.max_jobs_running, max_stored=s.api.max_jobs_stored, expiry_s=s.api.job_expiry_s))
 
     def _start_api(self, stack: contextlib.ExitStack, api_socket: socket.socket) -> None:
         """uvicorn on the socket bound at start; start-up counts as done only once it says ``started``."""
         import uvicorn
 
-        from .api import create_app
+        from .api import create_app, uvicorn_ssl_kwargs
 
-        server = uvicorn.Server(uvicorn.Config(create_app(state=self), log_level="warning", lifespan="off"))
+        app = create_app(state=self, settings=self.settings.api, audit=self.audit)
+        server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off", **uvicorn_ssl_kwargs(self.settings.api)))
         server.install_signal_handlers = lambda: None  # signals belong to the CLI: uvicorn runs in a thread
         self._server = server
         thread = threading.Thread(target=server.run, kwargs={"sockets": [api_socket]}, name="api", daemon=True)
@@ -289,10 +313,15 @@ class Daemon:
     def _dicom_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                self._take_dicom(self.watcher.wait(0.5))
+                self._take_dicom(self.intake.wait(0.5))
             except Exception as exc:  # noqa: BLE001 - the intake survives what it did not foresee
                 self.errors.append(f"DICOM intake: {type(exc).__name__}: {exc}")
                 self._event("error", f"DICOM intake: unexpected {type(exc).__name__}: {exc}")
+
+    def _intake_error(self, path: Path, message: str) -> None:
+        """A file in the watched folder that cannot be used (not DICOM, unreadable): named in status and events."""
+        self.errors.append(message)
+        self._event("error", f"fluoroscopy refused: {message}")
 
     def _take_dicom(self, paths) -> None:
         for path in paths:
@@ -301,6 +330,8 @@ class Daemon:
             except DrillnavError as exc:
                 self.errors.append(str(exc))
                 self._event("error", f"fluoroscopy refused: {exc}")
+                self.intake.failed(path, str(exc))
+                self.intake.mark_processed(path)  # refused for good: not offered again after a restart
                 continue
             for img in images:
                 # A re-shot of the same view replaces the earlier shot of it in the node.
@@ -313,8 +344,10 @@ class Daemon:
                     self.errors.append(f"{path}: {reason}")
                     self._event("error", f"fluoroscopy refused: {path}: {reason}")
                     continue
-                self.session.put(key(self.prefix, "fluoro_shot"), shot.to_bytes())
+                # Block rather than drop under congestion: a shot is megabytes, and a lost one is a registration missed.
+                self.session.put(key(self.prefix, "fluoro_shot"), shot.to_bytes(), congestion_control=zenoh.CongestionControl.BLOCK)
                 self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+            self.intake.mark_processed(path)  # published: not offered again after a restart
 
     # -- calibration jobs ------------------------------------------------------------------
     def _grab_frame(self, timeout_s: float = 2.0) -> tuple[int, Any]:
@@ -333,6 +366,60 @@ class Daemon:
         else:
             bundle = self.node.install_calibration(axis_drill=read_drill_calibration(path))
         self._event("info", f"{kind} calibration installed from {path}" + ("" if bundle is not None else "; still uncalibrated: the other calibration is missing"))
+        if bundle is None:
+            return
+        self._publish_calibration()
+        if self.scene_publisher is not None and kind == "camera":
+            self.scene_publisher.set_camera(bundle.camera)
+        if self.igtl is not None and kind != "camera":
+            self.igtl.set_drill_axis(bundle.axis_drill)
+
+    def _publish_calibration(self) -> None:
+        """The calibrations in use on ``calibration/active`` (at start and after each install): recordings carry them."""
+        from drillnav.schemas.calibration_message import active_calibration_message
+
+        bundle = self.node.calibration
+        if bundle is None:
+            return
+        s, cal = self.settings, self.settings.calibration.folder
+        self.session.put(key(self.prefix, "calibration"), active_calibration_message(
+            camera=bundle.camera, axis_drill=bundle.axis_drill, marker_set=self.node.marker_set, stamp_ns=time.time_ns(),
+            camera_file=None if s.twin else s.camera.calibration or cal / "camera.json",
+            drill_file=None if s.twin else s.camera.drill_calibration or cal / "drill.json"))
+
+    def _publish_audit(self, entry: dict[str, Any]) -> None:
+        self.session.put(key(self.prefix, "audit"), msg.AuditEntry(**entry).to_bytes())
+
+    def _start_interop(self, stack: contextlib.ExitStack, *, axis_drill, camera) -> None:
+        """What other tools connect to, each from its settings: Foxglove's scene topics and live WebSocket, OpenIGTLink (Slicer), ROS 2."""
+        s = self.settings
+        self.scene_publisher = self.igtl = None
+        try:
+            if s.foxglove.scene:
+                from .scene_publisher import ScenePublisher
+
+                self.scene_publisher = stack.enter_context(ScenePublisher(session=self.session, prefix=self.prefix, camera=camera))
+            if s.foxglove.enabled:
+                from .foxglove_bridge import FoxgloveBridge
+
+                stack.enter_context(FoxgloveBridge(session=self.session, prefix=self.prefix, host=s.foxglove.host, port=s.foxglove.port))
+                self.progress(f"Foxglove WebSocket up on ws://{s.foxglove.host}:{s.foxglove.port}")
+            if s.igtl.enabled:
+                from .igtl_server import IgtlServer
+
+                tracker = self.node.ct_tracker
+                self.igtl = stack.enter_context(IgtlServer(
+                    session=self.session, prefix=self.prefix, axis_drill=axis_drill, host=s.igtl.host, port=s.igtl.port,
+                    model_start_mm=s.igtl.model_start_mm, model_length_mm=s.igtl.model_length_mm, model_radius_mm=s.igtl.model_radius_mm,
+                    ct_volume=tracker.ct if tracker is not None else None))
+                self.progress(f"OpenIGTLink up on {s.igtl.host}:{s.igtl.port}")
+            if s.ros2.enabled:
+                from .ros2_bridge import Ros2Bridge
+
+                stack.enter_context(Ros2Bridge(session=self.session, prefix=self.prefix, domain_id=s.ros2.domain_id, topic=s.ros2.topic, node=s.ros2.node))
+                self.progress(f"ROS 2 stream up on {s.ros2.topic} (domain {s.ros2.domain_id})")
+        except OSError as exc:
+            raise StartupError(f"interop: cannot listen: {exc.strerror or exc}") from None
 
     # -- health ----------------------------------------------------------------------------
     def health(self) -> str | None:
@@ -369,6 +456,7 @@ class Daemon:
     def status(self) -> dict[str, Any]:
         st = self.node.status().to_dict()
         st.update({"twin": self.settings.twin, "recordings": list(self._recorders), "device_errors": self.errors[-5:],
+                   "recorders": {n: dataclasses.asdict(r.status()) for n, r in list(self._recorders.items())},
                    "topics": {n: key(self.prefix, n, "<view>") if "*" in t.suffix else key(self.prefix, n) for n, t in TOPICS.items()}})
         return st
 
@@ -384,8 +472,8 @@ class Daemon:
     def start_recording(self, name: str) -> list[str]:
         if name in self._recorders:
             raise KeyError(f"recording '{name}' is already running")
-        rec = Recorder(session=self.session, prefix=self.prefix, folder=self.settings.recording.folder, name=name, rotate_bytes=self.settings.recording.rotate_mb * 1024 * 1024,
-                       rotate_seconds=self.settings.recording.rotate_minutes * 60.0)
+        rec = Recorder.from_settings(self.settings.recording, session=self.session, prefix=self.prefix, name=name, on_event=self._event,
+                                     carried_state=self.carried)
         self._recorders[name] = rec
         return [str(p) for p in rec.files]
 

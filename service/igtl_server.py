@@ -126,13 +126,14 @@ class IgtlServer:
     ct_volume : the preoperative CT (video-CT mode), sent once to each client as it connects.
     """
 
-    def __init__(self, *, session: zenoh.Session, prefix: str, axis_drill: Line3D, host: str = "127.0.0.1", port: int = 18944,
+    def __init__(self, *, session: zenoh.Session, prefix: str, axis_drill: Line3D | None, host: str = "127.0.0.1", port: int = 18944,
                  model_start_mm: float = 60.0, model_length_mm: float = 200.0, model_radius_mm: float = 1.5, ct_volume: Volume | None = None) -> None:
         if not 0 < port < 65536:
             raise ValueError(f"OpenIGTLink port must be 1..65535, got {port}")
         self.session, self.prefix, self.host, self.port = session, prefix, host, port
         self._model_mm = (model_start_mm, model_length_mm, model_radius_mm)
-        self._model = igtl.drill_model_message(axis_drill, start_mm=model_start_mm, length_mm=model_length_mm, radius_mm=model_radius_mm, stamp_ns=0)
+        # None: not calibrated yet (real devices start so); the model goes out when the drill calibration is installed.
+        self._model = igtl.drill_model_message(axis_drill, start_mm=model_start_mm, length_mm=model_length_mm, radius_mm=model_radius_mm, stamp_ns=0) if axis_drill is not None else None
         self._ct_volume = ct_volume
         self.counters = IgtlCounters()
         self._lock = threading.Lock()
@@ -146,7 +147,8 @@ class IgtlServer:
     # -- lifecycle ------------------------------------------------------------------------
     def __enter__(self) -> "IgtlServer":
         self._listener = socket.create_server((self.host, self.port), reuse_port=False)
-        self._latched[igtl.DEVICE_DRILL_MODEL] = self._model.pack()
+        if self._model is not None:
+            self._latched[igtl.DEVICE_DRILL_MODEL] = self._model.pack()
         if self._ct_volume is not None:
             self._latched[igtl.DEVICE_CT] = igtl.ct_image_message(self._ct_volume, stamp_ns=time.time_ns()).pack()
         self._accept_thread = threading.Thread(target=self._accept_loop, name="igtl-accept", daemon=True)

@@ -16,7 +16,7 @@ from drillnav.service.daemon import Daemon
 from test_serve_lifecycle import config, settings_of
 from twin_images import board_views
 
-AUTH = {"Authorization": "Bearer test-token-1"}
+AUTH = {"Authorization": "Bearer test-token-1-of-16-chars"}
 BOARD = "checkerboard:9x6:25mm"
 
 

@@ -38,7 +38,7 @@ def config(folder: Path, *, twin: bool = False, **sections: str) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     base = {
         "zenoh": f'listen = ["{free_endpoint()}"]',
-        "api": f'port = {free_port()}\ntoken = "test-token-1"',
+        "api": f'port = {free_port()}\ntoken = "test-token-1-of-16-chars"',
         "camera": f'device = "{camera_file(folder)}"' if not twin else "",
         "dicom": f'watch_folder = "{folder / "in"}"\nscp_port = {free_port()}',
         "recording": f'folder = "{folder / "rec"}"',
@@ -211,7 +211,7 @@ def test_sigterm_while_streaming_registering_and_calibrating_with_stdout_closed(
             # A calibration job that computes for a while (many board views that show no board: each is searched).
             files = [("files", (f"v{i}.png", cv2.imencode(".png", np.full((720, 1280), 128, np.uint8))[1].tobytes(), "image/png")) for i in range(40)]
             r = httpx.post(f"{base}/calibration/jobs", data={"kind": "camera", "board": "checkerboard:9x6:25mm"}, files=files,
-                           headers={"Authorization": "Bearer test-token-1"}, timeout=30)
+                           headers={"Authorization": "Bearer test-token-1-of-16-chars"}, timeout=30)
             assert r.status_code == 202, r.text
             job_url = f"{base}/calibration/jobs/{r.json()['id']}"
             deadline = time.monotonic() + 10

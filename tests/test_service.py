@@ -348,10 +348,12 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         assert job["state"] == "failed" and job["inputs"] >= 3 and "not found in any" in job["message"], job
         assert httpx.post(job_url + "/install", headers=auth, timeout=5).status_code == 409
         # A corrupt DICOM dropped in the watched folder is refused with an event, and nothing stops.
+        # (Shorter than a DICOM preamble, it might still be being written: the watcher gives it 10 s before refusing it.)
         (tmp_path / "in" / "broken.dcm").write_bytes(b"garbage" * 10)
-        time.sleep(2.0)
-        status = httpx.get(f"{base}/status", timeout=5).json()
-        assert any("broken.dcm" in e for e in status["device_errors"])
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 20 and not any("broken.dcm" in e for e in (status := httpx.get(f"{base}/status", timeout=5).json())["device_errors"]):
+            time.sleep(0.5)
+        assert any("broken.dcm" in e for e in status["device_errors"]), status["device_errors"]
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
