@@ -12,6 +12,7 @@ from fastapi import Depends, FastAPI, Header, HTTPException, status
 from pydantic import BaseModel, Field
 
 from .api_calibration import calibration_router
+from .display_routes import display_router, docs_router
 
 __all__ = ["create_app", "ServiceState"]
 
@@ -42,7 +43,12 @@ class ShotCreate(BaseModel):
 
 
 def create_app(*, state: ServiceState) -> FastAPI:
-    app = FastAPI(title="drillnav", version="0.1.0", description="Drill-mounted video guidance: status, registration, recordings.")
+    # /docs and /redoc come from packaged files (display_routes.docs_router): FastAPI's own load from a CDN.
+    app = FastAPI(title="drillnav", version="0.1.0", description="Drill-mounted video guidance: status, registration, recordings.", docs_url=None, redoc_url=None)
+    # -- display (service/display_routes.py): the surgeon's page at /, its WebSocket, offline API docs --
+    app.include_router(docs_router(app))
+    app.include_router(display_router(getattr(state, "display_hub", None)))
+    # -- end display --
 
     def require_token(authorization: Annotated[str | None, Header()] = None) -> None:
         if not authorization or not authorization.startswith("Bearer "):

@@ -190,8 +190,15 @@ class CtTracker:
         offset, angle, entry = best
         t = entry.trajectory
         c = conformance_along(axis_ct, acceptance_surface(self.ct, entry, self._surfaces), planned_entry_mm=t.entry_mm, planned_target_mm=t.target_mm)
-        return {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle, "breach": bool(c.breach),
-                "min_clearance_mm": float(c.min_distance_mm) if np.isfinite(c.min_distance_mm) else None, "kwire_radius_mm": c.kwire_radius_mm}
+        doc = {"trajectory": t.name, "axis_to_planned_entry_mm": offset, "angle_to_plan_deg": angle, "breach": bool(c.breach),
+               "min_clearance_mm": float(c.min_distance_mm) if np.isfinite(c.min_distance_mm) else None, "kwire_radius_mm": c.kwire_radius_mm}
+        # Where the clearance is smallest (for the display): mm along the axis from its entry into bone, and the point in V.
+        judged = np.flatnonzero(c.judged)
+        if judged.size and c.entry_mm is not None:
+            i = int(judged[np.argmin(c.distance_mm[judged])])
+            doc["min_clearance_along_mm"] = float(c.along_mm[i])
+            doc["min_clearance_point_mm"] = (c.entry_mm + c.along_mm[i] * axis_ct.direction).tolist()
+        return doc
 
     def status(self) -> dict[str, Any]:
         reg = self.registration

@@ -26,6 +26,7 @@ from .api import create_app
 from .bus import open_session
 from .calibration_jobs import CalibrationJobs
 from .camera_pump import CameraPump
+from .display_hub import DisplayHub
 from .node import RegistrationNode
 from .recorder import Recorder
 from .settings import Settings, SettingsError
@@ -73,7 +74,12 @@ class Daemon:
             camera, axis = read_camera_calibration(s.camera.calibration), read_drill_calibration(s.camera.drill_calibration)
             self.camera_device = Webcam(device=s.camera.device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps,
                                         fourcc=s.camera.fourcc, exposure=s.camera.exposure)
-        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis, ct_tracker=self._ct_tracker())
+        ct_tracker = self._ct_tracker()
+        self.node = RegistrationNode(session=self.session, prefix=self.prefix, marker_set=marker_set, camera=camera, axis_drill=axis, ct_tracker=ct_tracker)
+        # -- display (service/display_hub.py): the browser's streams, from this session --
+        self.display_hub = DisplayHub(session=self.session, prefix=self.prefix, plan=[e.trajectory for e in ct_tracker.plan] if ct_tracker else (),
+                                      ct=ct_tracker.ct if ct_tracker else None).__enter__()
+        # -- end display --
         cal = s.calibration.folder
         self.calibration_jobs = CalibrationJobs(
             work_dir=cal, grab_frame=self._grab_frame, on_install=self._install_calibration,
@@ -146,6 +152,8 @@ class Daemon:
             self.calibration_jobs.close()
         if hasattr(self, "node"):
             self.node.close()
+        if hasattr(self, "display_hub"):
+            self.display_hub.__exit__(None, None, None)
         for name in list(self._recorders):
             self.stop_recording(name)
         if hasattr(self, "session"):
