@@ -159,7 +159,8 @@ def axis_in_ct_report(
             cv2.imwrite(str(f), img)
             files[name] = str(f)
         mosaic = views_dir / "ct-views.png"
-        cv2.imwrite(str(mosaic), compose_views(views, caption=f"drill axis (cyan), error cone (yellow), plan (green); GC {reg.similarity:.3f}"))
+        judged = [r for r in report["conformance"] if r.get("evaluated") and r["trajectory"] == report.get("nearest_trajectory")]
+        cv2.imwrite(str(mosaic), compose_views(views, caption=f"CT registration GC {reg.similarity:.3f}", verdict=judged[0] if judged else None))
         files["mosaic"] = str(mosaic)
         report["views"] = files
     report["report_s"] = time.perf_counter() - t0

@@ -13,7 +13,7 @@ const S = window.drillnav = {
   axis: null, axisRecvPerf: 0, axisCt: null, axisCtRecvPerf: 0, status: null, markers: null, cameraStamp: 0, cameraRecvPerf: 0,
   views: {},                   // name -> {stamp_ns, P (3x4), rows, columns, image, canvas, overlay, drawn}
   newAxis: false, newAxisCt: false, lastDrawnStamp: 0,
-  latenciesMs: [], repeats: 0, framesDrawn: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
+  latenciesMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
 };
 
 // ---- small linear algebra ------------------------------------------------------------------------------
@@ -79,7 +79,7 @@ function connect() {
         break;
       case "axis":
         if (S.axis && m.data.source_frame_stamp_ns <= S.axis.source_frame_stamp_ns) { S.repeats++; break; }  // never again as new
-        S.axis = m.data; S.axisRecvPerf = now; S.newAxis = true; break;
+        S.axis = m.data; S.axisRecvPerf = now; S.newAxis = true; S.axesReceived++; break;
       case "axis_ct": S.axisCt = m.data; S.axisCtRecvPerf = now; S.newAxisCt = true; break;
       case "status": S.status = m.data; S.serverOffsetMs = Date.now() - m.server_ns / 1e6; break;
       case "markers": S.markers = m.data; break;
