@@ -41,6 +41,7 @@ __all__ = ["DisplayHub", "DisplayClient", "CtVolumeForDisplay"]
 MAX_VIEWS = 4
 CT_MAX_VOXELS_PER_AXIS = 256   # the volume a browser reslices: <= 16 MB at 8 bits
 CT_WINDOW_HU = (400.0, 1800.0)  # level, width: bone, as the CLI's CT views
+_AXIS_KEYS = ("point_mm", "direction", "predicted_error", "source_frame_stamp_ns")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -144,7 +145,7 @@ class DisplayHub:
         def run(sample: zenoh.Sample) -> None:
             try:
                 handler(sample)
-            except (ValueError, KeyError, TypeError) as exc:
+            except (ValueError, KeyError, TypeError) as exc:  # json's and UTF-8's decode errors are ValueErrors
                 self.decode_errors += 1
                 self.last_decode_error = f"{sample.key_expr}: {exc}"
 
@@ -190,18 +191,23 @@ class DisplayHub:
 
     # -- streams ----------------------------------------------------------------------------
     @staticmethod
-    def _raw_json(sample: zenoh.Sample) -> str:
+    def _raw_json(sample: zenoh.Sample, *required: str) -> str:
+        """The message's JSON text, checked to be an object with ``required`` keys (the browser gets only what parses)."""
         text = sample.payload.to_bytes().decode()
-        if not text.startswith("{"):
+        doc = json.loads(text)
+        if not isinstance(doc, dict):
             raise ValueError("expected a JSON object")
+        missing = [k for k in required if k not in doc]
+        if missing:
+            raise ValueError(f"missing {', '.join(missing)}")
         return text
 
     def _on_axis(self, sample: zenoh.Sample) -> None:
         # Passed through undecoded: the browser parses it anyway, and this runs at camera rate.
-        self._send("axis", f'{{"type":"axis","recv_ns":{time.time_ns()},"data":{self._raw_json(sample)}}}')
+        self._send("axis", f'{{"type":"axis","recv_ns":{time.time_ns()},"data":{self._raw_json(sample, *_AXIS_KEYS)}}}')
 
     def _on_axis_ct(self, sample: zenoh.Sample) -> None:
-        self._send("axis_ct", f'{{"type":"axis_ct","recv_ns":{time.time_ns()},"data":{self._raw_json(sample)}}}')
+        self._send("axis_ct", f'{{"type":"axis_ct","recv_ns":{time.time_ns()},"data":{self._raw_json(sample, *_AXIS_KEYS)}}}')
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         self._send("status", f'{{"type":"status","server_ns":{time.time_ns()},"data":{self._raw_json(sample)}}}')

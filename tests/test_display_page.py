@@ -281,3 +281,15 @@ def test_pages_allow_their_own_host_only(served):
         assert r.status_code == 200
         csp = r.headers["content-security-policy"]
         assert "default-src 'self'" in csp and "connect-src 'self'" in csp and "http" not in csp, (path, csp)
+
+
+def test_a_malformed_message_is_counted_and_the_display_goes_on(served, page):
+    hub, bus = served["hub"], served["bus"]
+    before, drawn = hub.decode_errors, page.evaluate("window.drillnav.framesDrawn")
+    for bad in (b"not json", b'{"point_mm": [0, 0, 0]}', b"[1, 2]"):
+        bus.session.put(key(PREFIX, "axis_carm"), bad)
+    deadline = time.monotonic() + 5
+    while hub.decode_errors < before + 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert hub.decode_errors == before + 3 and "axis/carm" in hub.last_decode_error
+    page.wait_for_function(f"window.drillnav.framesDrawn > {drawn + 10}", timeout=5000)
