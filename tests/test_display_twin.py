@@ -25,7 +25,8 @@ from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
 from drillnav.service.bus import open_session
 
-pytestmark = pytest.mark.slow
+# The twin renders its scene and camera loop at start-up: minutes on a loaded 2-core machine, past the suite's 300 s default.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")
