@@ -38,7 +38,7 @@ def twin(tmp_path_factory):
     ep, port = free_endpoint(), free_port()
     cfg = tmp / "drillnav.toml"
     cfg.write_text(f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {port}\ntoken = "display-twin-token"\n'
-                   f'[dicom]\nwatch_folder = "{tmp / "in"}"\nscp_enabled = false\n[recording]\nfolder = "{tmp / "rec"}"\n'
+                   f'[dicom]\nwatch_folder = "{tmp / "in"}"\nscp_port = {free_port()}\n[recording]\nfolder = "{tmp / "rec"}"\n'
                    f'[calibration]\nfolder = "{tmp / "cal"}"\n[twin_scene]\nseed = 5\n')
     proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
