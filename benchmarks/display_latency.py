@@ -13,6 +13,7 @@ Run: .venv/bin/python benchmarks/display_latency.py [--seconds 60] [--ct] [--scr
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import signal
 import socket
@@ -87,11 +88,11 @@ def main() -> None:
                         time.sleep(1.0)
                         page.screenshot(path=str(args.screenshots / "display-ct.png"))
                         page.click("#b-fluoro")
-                page.evaluate("() => { const S = window.drillnav; S.latenciesMs = []; S.framesDrawn = 0; S.axesReceived = 0; S.repeats = 0; }")
+                page.evaluate("() => { const S = window.drillnav; S.latenciesMs = []; S.hubToDrawnMs = []; S.framesDrawn = 0; S.axesReceived = 0; S.repeats = 0; }")
                 status0 = httpx.get(base + "/status", timeout=5).json()
                 t_start = time.monotonic()
                 time.sleep(args.seconds)
-                got = page.evaluate("() => { const S = window.drillnav; return {lat: S.latenciesMs, drawn: S.framesDrawn, received: S.axesReceived, repeats: S.repeats}; }")
+                got = page.evaluate("() => { const S = window.drillnav; return {lat: S.latenciesMs, hub: S.hubToDrawnMs, drawn: S.framesDrawn, received: S.axesReceived, repeats: S.repeats}; }")
                 t_end = time.monotonic()
                 status1 = httpx.get(base + "/status", timeout=5).json()
                 browser.close()
@@ -108,13 +109,15 @@ def main() -> None:
     report("display_latency", [
         figure("capture-to-drawn p50", float(np.percentile(lat, 50)), "ms", 96.2),
         figure("capture-to-drawn p99", float(np.percentile(lat, 99)), "ms", 96.2),
+        figure("hub-receipt-to-drawn p50 (display's share)", float(np.percentile(got["hub"], 50)), "ms", None),
+        figure("hub-receipt-to-drawn p99 (display's share)", float(np.percentile(got["hub"], 99)), "ms", None),
         figure("axes drawn per second", got["drawn"] / (t_end - t_start), "Hz", 10.0, lower_is_better=False),
         figure("axes published by the node", float(published), "n", None),
         figure("axes received by the page", float(got["received"]), "n", None),
         figure("axes drawn (one browser frame each)", float(got["drawn"]), "n", None),
         figure("axes shown twice as new", float(got["repeats"]), "n", None),
         figure("frames dropped by the node", float(status1["frames_dropped"] - status0["frames_dropped"]), "n", None),
-    ], seconds=args.seconds, live_ct=args.ct, daemon_startup_s=round(startup_s, 1),
+    ], seconds=args.seconds, live_ct=args.ct, daemon_startup_s=round(startup_s, 1), load_average_1min=round(os.getloadavg()[0], 1),
         note="twin daemon at 30 frames/s, headless Chromium on the same machine (rAF time vs capture stamp, one clock); 2-core machine shared with other work")
 
 

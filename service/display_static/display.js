@@ -13,7 +13,7 @@ const S = window.drillnav = {
   axis: null, axisRecvPerf: 0, axisCt: null, axisCtRecvPerf: 0, status: null, markers: null, cameraStamp: 0, cameraRecvPerf: 0,
   views: {},                   // name -> {stamp_ns, P (3x4), rows, columns, image, canvas, overlay, drawn}
   newAxis: false, newAxisCt: false, lastDrawnStamp: 0,
-  latenciesMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
+  latenciesMs: [], hubToDrawnMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
 };
 
 // ---- small linear algebra ------------------------------------------------------------------------------
@@ -79,7 +79,7 @@ function connect() {
         break;
       case "axis":
         if (S.axis && m.data.source_frame_stamp_ns <= S.axis.source_frame_stamp_ns) { S.repeats++; break; }  // never again as new
-        S.axis = m.data; S.axisRecvPerf = now; S.newAxis = true; S.axesReceived++; break;
+        S.axis = m.data; S.axisRecvPerf = now; S.axisHubNs = m.recv_ns; S.newAxis = true; S.axesReceived++; break;
       case "axis_ct": S.axisCt = m.data; S.axisCtRecvPerf = now; S.newAxisCt = true; break;
       case "status": S.status = m.data; S.serverOffsetMs = Date.now() - m.server_ns / 1e6; break;
       case "markers": S.markers = m.data; break;
@@ -371,7 +371,8 @@ function frame(t) {
     // rAF time and capture stamp on one clock (one machine): glass-to-glass to the frame that shows this axis.
     const shownMs = performance.timeOrigin + t;
     S.latenciesMs.push(shownMs - S.axis.source_frame_stamp_ns / 1e6);
-    if (S.latenciesMs.length > 100000) S.latenciesMs.splice(0, 50000);
+    S.hubToDrawnMs.push(shownMs - S.axisHubNs / 1e6);  // the display's own share: hub, socket, browser
+    if (S.latenciesMs.length > 100000) { S.latenciesMs.splice(0, 50000); S.hubToDrawnMs.splice(0, 50000); }
     S.framesDrawn++;
   }
   const ctStale = !S.axisCt || now - S.axisCtRecvPerf > STALE_MS;
