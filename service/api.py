@@ -43,7 +43,7 @@ class ShotCreate(BaseModel):
 
 
 def create_app(*, state: ServiceState) -> FastAPI:
-    # /docs and /redoc come from packaged files (display_routes.docs_router): FastAPI's own load from a CDN.
+    # /docs and /redoc come from packaged files (display_routes.docs_router): FastAPI's own would load from a CDN.
     app = FastAPI(title="drillnav", version="0.1.0", description="Drill-mounted video guidance: status, registration, recordings.", docs_url=None, redoc_url=None)
     # -- display (service/display_routes.py): the surgeon's page at /, its WebSocket, offline API docs --
     app.include_router(docs_router(app))
