@@ -259,7 +259,8 @@ function drawCt(stale) {
   if (!a || !S.ct) { verdict.className = "verdict unknown"; verdict.textContent = S.ct ? "waiting for the CT registration…" : "loading CT…"; return; }
   const dir = unit(a.direction), p = a.point_mm, conf = a.conformance;
   const plan = conf ? S.plan.find((t) => t.name === conf.trajectory) : null;
-  const centre = plan ? add(p, mul(dir, dot(sub(plan.entry_mm, p), dir))) : p;
+  // Planes through the axis at the middle of the planned stretch: the 160 mm field holds entry to target.
+  const centre = plan ? add(p, mul(dir, dot(sub(mul(add(plan.entry_mm, plan.target_mm), 0.5), p), dir))) : p;
   const planes = ctPlanes(a, centre);
   const col = stale ? COLOURS.stale : COLOURS.axis;
   const pe = a.predicted_error || { position_mm: 0, angle_deg: 0 }, tanA = Math.tan((pe.angle_deg * Math.PI) / 180);
