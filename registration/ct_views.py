@@ -16,14 +16,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from .line import Line3D
+from .overlay import ALARM_BGR, AXIS_BGR, CONE_BGR, OK_BGR, PLAN_BGR
 from .transforms import apply
 from .volume import Volume
 
 __all__ = ["PlannedTrajectory", "SlicePlane", "slice_planes", "render_ct_views", "compose_views"]
 
-AXIS_BGR = (255, 255, 0)
-CONE_BGR = (0, 215, 255)
-PLAN_BGR = (80, 220, 80)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,7 +134,8 @@ def render_ct_views(
             for sgn in (-1.0, 1.0):
                 tip = end + sgn * side * np.tan(np.radians(cone_half_angle_deg)) * length_mm
                 canvas.segment(img, apex, tip, CONE_BGR, 1)
-        canvas.segment(img, start, end, AXIS_BGR, 2)
+        canvas.segment(img, start, end, (0, 0, 0), 5)
+        canvas.segment(img, start, end, AXIS_BGR, 3)
         denom = axis_ct.direction @ n
         if plane.name != "oblique" and abs(denom) > 1e-6:
             hit = axis_ct.point_mm + ((c - axis_ct.point_mm) @ n / denom) * axis_ct.direction
@@ -161,12 +160,34 @@ def _label(img: NDArray[np.uint8], plane: SlicePlane) -> None:
             cv2.putText(img, text, org, font, 0.45, (200, 200, 200), 1, cv2.LINE_AA)
 
 
-def compose_views(views: dict[str, NDArray[np.uint8]], *, caption: str = "") -> NDArray[np.uint8]:
-    """2 x 2 mosaic (axial, coronal / sagittal, oblique) with an optional caption strip."""
+def compose_views(views: dict[str, NDArray[np.uint8]], *, caption: str = "", verdict: dict | None = None) -> NDArray[np.uint8]:
+    """2 x 2 mosaic (axial, coronal / sagittal, oblique) with a legend strip, and the verdict above it when given.
+
+    ``verdict``: ``{"trajectory", "breach", "min_clearance_mm", "min_clearance_along_mm" (optional)}``, a
+    conformance result as the CLI report and ``drillnav/axis/ct`` give it; drawn as a wide bar, vermillion for a
+    breach and bluish green when clear, so it is read before the slices.
+    """
     order = [views[k] for k in ("axial", "coronal", "sagittal", "oblique")]
     grid = np.vstack([np.hstack(order[:2]), np.hstack(order[2:])])
+    w = grid.shape[1]
+    legend = np.zeros((30, w, 3), np.uint8)
+    x = 8
+    for name, colour in (("drill axis", AXIS_BGR), ("error cone", CONE_BGR), ("plan, corridor", PLAN_BGR)):
+        cv2.line(legend, (x, 15), (x + 30, 15), colour, 4, cv2.LINE_AA)
+        cv2.putText(legend, name, (x + 38, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+        x += 48 + int(cv2.getTextSize(name, cv2.FONT_HERSHEY_SIMPLEX, 0.55, 1)[0][0]) + 16
     if caption:
-        strip = np.zeros((26, grid.shape[1], 3), np.uint8)
-        cv2.putText(strip, caption, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-        grid = np.vstack([grid, strip])
-    return grid
+        cv2.putText(legend, caption, (x + 10, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (200, 200, 200), 1, cv2.LINE_AA)
+    parts = [grid, legend]
+    if verdict is not None:
+        bar = np.zeros((44, w, 3), np.uint8)
+        breach = bool(verdict.get("breach"))
+        bar[:] = ALARM_BGR if breach else OK_BGR
+        mc = verdict.get("min_clearance_mm")
+        text = f"{'BREACH' if breach else 'CLEAR'} ({verdict.get('trajectory', '?')})"
+        text += ": axis misses the bone" if mc is None else f": min clearance {mc:.1f} mm"
+        if verdict.get("min_clearance_along_mm") is not None:
+            text += f" at {verdict['min_clearance_along_mm']:.0f} mm into bone"
+        cv2.putText(bar, text, (10, 31), cv2.FONT_HERSHEY_SIMPLEX, 0.9, (255, 255, 255), 2, cv2.LINE_AA)
+        parts.insert(0, bar)
+    return np.vstack(parts)

@@ -1,4 +1,8 @@
-"""Overlays on fluoroscopy views: the drill axis, its error cone, marker detections, optional marker masking."""
+"""Overlays on fluoroscopy views (the CLI's ``--overlays`` and the daemon's overlay topic): the drill axis across the
+whole image, its error cone, the detections, a title and a legend; optional marker masking.
+
+The browser display draws the same from the streamed axis (service/display_static/display.js).
+"""
 
 from __future__ import annotations
 
@@ -10,7 +14,8 @@ from .carm import CArmView
 from .fluoro_markers import FluoroDetections
 from .line import Line3D
 
-__all__ = ["to_display", "draw_axis", "draw_detections", "mask_markers"]
+__all__ = ["to_display", "draw_axis", "draw_detections", "annotate", "line_across_image", "mask_markers",
+           "AXIS_BGR", "CONE_BGR", "PLAN_BGR", "ENTRY_BGR", "OK_BGR", "ALARM_BGR", "STALE_BGR"]
 
 
 def to_display(image_log: NDArray[np.float32]) -> NDArray[np.uint8]:
@@ -20,40 +25,139 @@ def to_display(image_log: NDArray[np.float32]) -> NDArray[np.uint8]:
     return cv2.cvtColor(((1.0 - g) * 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
 
 
-def _segment(view: CArmView, a: NDArray[np.float64], b: NDArray[np.float64]) -> tuple[tuple[int, int], tuple[int, int]]:
-    pa, pb = view.project(np.vstack([a, b]))
-    return (int(round(pa[0])), int(round(pa[1]))), (int(round(pb[0])), int(round(pb[1])))
+# Okabe-Ito (colour-blind safe), BGR; the browser display uses the same (service/display_static/display.css).
+AXIS_BGR = (66, 228, 240)      # yellow
+CONE_BGR = (0, 159, 230)       # orange
+PLAN_BGR = (233, 180, 86)      # sky blue
+ENTRY_BGR = (167, 121, 204)    # reddish purple
+OK_BGR = (115, 158, 0)         # bluish green
+ALARM_BGR = (0, 94, 213)       # vermillion
+STALE_BGR = (154, 154, 154)
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+CONE_REACH_MM = 400.0  # the cone is drawn this far either side of the working point
 
 
-def draw_axis(bgr: NDArray[np.uint8], view: CArmView, axis: Line3D, *, cone_half_angle_deg: float, length_mm: float = 150.0, near_mm: float = -60.0) -> NDArray[np.uint8]:
-    """Draw the axis (cyan) from ``near_mm`` to ``length_mm`` along it, and its error cone (yellow)."""
+def line_across_image(view: CArmView, axis: Line3D) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """Where the image of the (infinite) axis crosses the detector's border: two pixels (column, row), in the drill's direction.
+
+    The image of a 3-D line is the 2-D line through the images of two of its points; clipped to the image
+    rectangle (pixel centres from 0 to columns-1, edges half a pixel beyond). None when it misses the image.
+    """
+    a, b = view.project(np.vstack([axis.point_mm, axis.point_mm + 100.0 * axis.direction]))
+    line = np.cross([a[0], a[1], 1.0], [b[0], b[1], 1.0])
+    x0, y0, x1, y1 = -0.5, -0.5, view.columns - 0.5, view.rows - 0.5
+    hits = []
+    if abs(line[1]) > 1e-12:
+        hits += [(x, -(line[0] * x + line[2]) / line[1]) for x in (x0, x1)]
+    if abs(line[0]) > 1e-12:
+        hits += [(-(line[1] * y + line[2]) / line[0], y) for y in (y0, y1)]
+    hits = [np.array(h) for h in hits if x0 - 1e-6 <= h[0] <= x1 + 1e-6 and y0 - 1e-6 <= h[1] <= y1 + 1e-6]
+    if len(hits) < 2:
+        return None
+    p, q = max(((p, q) for i, p in enumerate(hits) for q in hits[i + 1:]), key=lambda pq: float(np.linalg.norm(pq[0] - pq[1])))
+    return (p, q) if (q - p) @ (b - a) >= 0 else (q, p)
+
+
+def _px(points: NDArray[np.float64]) -> NDArray[np.int32]:
+    """Pixel coordinates to cv2's fixed point (4 fractional bits): sub-pixel lines, as the browser draws them."""
+    return np.round(np.atleast_2d(points) * 16).astype(np.int32)
+
+
+def _thickness(bgr: NDArray[np.uint8]) -> int:
+    return max(2, round(bgr.shape[1] / 220))  # ~4 px on a 976 px view: legible when shown on a monitor across the room
+
+
+def draw_axis(bgr: NDArray[np.uint8], view: CArmView, axis: Line3D, *, cone_half_angle_deg: float, position_error_mm: float = 0.0,
+              stale: bool = False) -> NDArray[np.uint8]:
+    """The axis across the whole image (yellow, outlined), its error cone (orange band) and its working point.
+
+    The cone is the predicted position error at ``axis.point_mm`` widening by ``cone_half_angle_deg`` either side
+    of it, in the plane of the axis and the beam; ``stale`` draws everything grey (an axis that is not live).
+    """
     out = bgr.copy()
-    start, end = axis.at([near_mm])[0], axis.at([length_mm])[0]
-    a, b = _segment(view, start, end)
-    # The cone: lines at +/- the half angle in the plane containing the axis and the view's beam.
-    _, source_from_carm = view.decompose()
-    beam = source_from_carm[2, :3]
-    side = np.cross(axis.direction, beam)
-    if np.linalg.norm(side) > 1e-9:
-        side /= np.linalg.norm(side)
-        for sgn in (-1.0, 1.0):
-            tip = end + sgn * side * np.tan(np.radians(cone_half_angle_deg)) * (length_mm - 0.0)
-            c, d = _segment(view, axis.at([0.0])[0], tip)
-            cv2.line(out, c, d, (0, 215, 255), 1, cv2.LINE_AA)
-    cv2.line(out, a, b, (255, 255, 0), 2, cv2.LINE_AA)
+    lw = _thickness(out)
+    d = axis.direction
+    s = np.arange(-CONE_REACH_MM, CONE_REACH_MM + 1e-9, 20.0)
+    centres = axis.at(s)
+    side = np.cross(d, centres - view.source_position_mm)
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    r = (position_error_mm + np.abs(s) * np.tan(np.radians(cone_half_angle_deg)))[:, None]
+    ahead = view.depth_mm(centres) > 1.0  # points behind the source have no image
+    if ahead.sum() > 1:
+        upper, lower = view.project((centres + r * side)[ahead]), view.project((centres - r * side)[ahead])
+        band = out.copy()
+        cv2.fillPoly(band, [_px(np.vstack([upper, lower[::-1]]))], STALE_BGR if stale else CONE_BGR, cv2.LINE_AA, 4)
+        out = cv2.addWeighted(band, 0.3, out, 0.7, 0.0)
+        for edge in (upper, lower):
+            cv2.polylines(out, [_px(edge)], False, STALE_BGR if stale else CONE_BGR, max(1, lw // 2), cv2.LINE_AA, 4)
+    seg = line_across_image(view, axis)
+    if seg is not None:
+        a, b = _px(np.vstack(seg))
+        cv2.line(out, tuple(a), tuple(b), (0, 0, 0), lw * 2, cv2.LINE_AA, 4)
+        cv2.line(out, tuple(a), tuple(b), STALE_BGR if stale else AXIS_BGR, lw, cv2.LINE_AA, 4)
+        # An arrowhead near the far border: the way the drill advances.
+        u = (seg[1] - seg[0]) / np.linalg.norm(seg[1] - seg[0])
+        tip = seg[1] - 4 * lw * u
+        k = 6 * lw
+        tri = np.array([tip, tip - k * u + 0.5 * k * np.array([-u[1], u[0]]), tip - k * u - 0.5 * k * np.array([-u[1], u[0]])])
+        cv2.fillPoly(out, [_px(tri)], STALE_BGR if stale else AXIS_BGR, cv2.LINE_AA, 4)
+    if view.depth_mm(axis.point_mm[None])[0] > 1.0:
+        c = _px(view.project(axis.point_mm[None]))[0]
+        cv2.circle(out, tuple(c), 2 * lw * 16, STALE_BGR if stale else ENTRY_BGR, -1, cv2.LINE_AA, 4)
+        cv2.circle(out, tuple(c), 2 * lw * 16, (0, 0, 0), max(1, lw // 2), cv2.LINE_AA, 4)
     return out
 
 
 def draw_detections(bgr: NDArray[np.uint8], detections: FluoroDetections) -> NDArray[np.uint8]:
+    """Identified markers (ring and BBs, bluish green, with their id) and candidates refused (vermillion cross, with why)."""
     out = bgr.copy()
+    scale = out.shape[1] / 976
     for m in detections.markers:
         (cx, cy), (d1, d2), ang = m.ring_ellipse
-        cv2.ellipse(out, ((cx, cy), (d1, d2), ang), (0, 200, 0), 1, cv2.LINE_AA)
+        cv2.ellipse(out, ((cx, cy), (d1, d2), ang), OK_BGR, 2, cv2.LINE_AA)
         for b in m.bbs:
-            cv2.circle(out, (int(round(b.center_px[0])), int(round(b.center_px[1]))), int(round(b.diameter_px / 2 + 2)), (0, 0, 255), 1, cv2.LINE_AA)
-        cv2.putText(out, str(m.marker_id), (int(cx + d1 / 2), int(cy)), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 200, 0), 1, cv2.LINE_AA)
+            cv2.circle(out, (int(round(b.center_px[0])), int(round(b.center_px[1]))), int(round(b.diameter_px / 2 + 2)), OK_BGR, 1, cv2.LINE_AA)
+        _text(out, f"#{m.marker_id}", (int(cx + d1 / 2 + 4), int(cy)), 0.8 * scale, OK_BGR)
     for r in detections.rejected:
-        cv2.drawMarker(out, (int(r.center_px[0]), int(r.center_px[1])), (0, 0, 255), cv2.MARKER_TILTED_CROSS, 24, 2)
+        c = (int(r.center_px[0]), int(r.center_px[1]))
+        cv2.drawMarker(out, c, ALARM_BGR, cv2.MARKER_TILTED_CROSS, int(24 * scale), 3)
+        _text(out, f"not used: {r.reason}"[:48], (c[0] + int(16 * scale), c[1] + int(6 * scale)), 0.55 * scale, ALARM_BGR)
+    return out
+
+
+def _text(img: NDArray[np.uint8], text: str, org: tuple[int, int], scale: float, colour, thickness: int | None = None) -> None:
+    """Text with a black outline, readable on bone and on air."""
+    t = thickness or max(1, round(2 * scale))
+    cv2.putText(img, text, org, _FONT, scale, (0, 0, 0), t + 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, _FONT, scale, colour, t, cv2.LINE_AA)
+
+
+def annotate(bgr: NDArray[np.uint8], *, view_name: str, stamp_ns: int | None = None, predicted_error: tuple[float, float] | None = None,
+             legend: bool = True, plan: bool = False) -> NDArray[np.uint8]:
+    """A title strip (view, time of the shot, predicted error in mm and deg) above the image, and a legend in its corner."""
+    import datetime as _dt
+
+    h, w = bgr.shape[:2]
+    scale = w / 976
+    strip = np.zeros((int(44 * scale), w, 3), np.uint8)
+    title = f"view {view_name}"
+    if stamp_ns is not None:
+        title += "   " + _dt.datetime.fromtimestamp(stamp_ns / 1e9).strftime("%H:%M:%S")
+    if predicted_error is not None:
+        title += f"   predicted error {predicted_error[0]:.1f} mm, {predicted_error[1]:.1f} deg"
+    _text(strip, title, (int(8 * scale), int(31 * scale)), 0.9 * scale, (255, 255, 255))
+    out = np.vstack([strip, bgr])
+    if legend:
+        items = [("drill axis", AXIS_BGR), ("error cone (95 %)", CONE_BGR), ("working point", ENTRY_BGR), ("markers", OK_BGR)]
+        if plan:
+            items.insert(2, ("plan, corridor", PLAN_BGR))
+        y0 = out.shape[0] - int((len(items) * 26 + 10) * scale)
+        box = out[y0:, : int(250 * scale)]
+        box[:] = (box * 0.35).astype(np.uint8)
+        for i, (name, colour) in enumerate(items):
+            y = y0 + int((22 + 26 * i) * scale)
+            cv2.line(out, (int(10 * scale), y - int(6 * scale)), (int(46 * scale), y - int(6 * scale)), colour, max(2, round(5 * scale)), cv2.LINE_AA)
+            _text(out, name, (int(56 * scale), y), 0.65 * scale, (255, 255, 255))
     return out
 
 

@@ -139,6 +139,8 @@ class Conformance:
     breach: bool
     min_clearance_mm: float | None = Field(description="null: the axis never enters the acceptance volume's map")
     kwire_radius_mm: float
+    min_clearance_along_mm: float | None = Field(None, description="where the clearance is smallest: mm along the axis from its entry into bone")
+    min_clearance_point_mm: Vec3 | None = Field(None, description="where the clearance is smallest: the point in V, mm")
 
 
 @_bind

@@ -19,6 +19,7 @@ from .audit import AuditAction, AuditLog
 from .auth import FailureLimiter, check_bearer
 from .body_limits import BodyLimits, RequestGuard
 from .settings import ApiSettings
+from .display_routes import display_router, docs_router
 
 __all__ = ["create_app", "ServiceState", "uvicorn_ssl_kwargs", "running_recordings"]
 
@@ -71,10 +72,14 @@ def create_app(*, state: ServiceState, settings: ApiSettings | None = None, audi
     api = settings or ApiSettings()
     if not getattr(state, "token", None):
         raise ValueError("the API needs a token: state.token is empty (see drillnav.service.auth.resolve_token)")
-    app = FastAPI(title="drillnav", version="0.1.0", description="Drill-mounted video guidance: status, registration, recordings.")
+    # /docs and /redoc come from packaged files (display_routes.docs_router): FastAPI's own would load from a CDN.
+    app = FastAPI(title="drillnav", version="0.1.0", description="Drill-mounted video guidance: status, registration, recordings.", docs_url=None, redoc_url=None)
     limits = BodyLimits(default_bytes=int(api.max_json_kb * 1024), upload_bytes=int(api.max_upload_mb * 1024 * 1024))
     limiter = FailureLimiter(burst=api.auth_failures_burst, window_s=api.auth_failures_window_s)
     app.add_middleware(RequestGuard, token=lambda: state.token, limits=limits, limiter=limiter, audit=audit)
+    # The surgeon's page at /, its WebSocket, the offline API docs (service/display_routes.py): read-only, no token.
+    app.include_router(docs_router(app))
+    app.include_router(display_router(getattr(state, "display_hub", None)))
 
     def require_token(authorization: Annotated[str | None, Header()] = None) -> None:
         # RequestGuard has checked already, before the body; this keeps each route safe on its own and documents it.

@@ -16,7 +16,7 @@ from drillnav.drivers.image_files import read_image
 from drillnav.registration.errors import MarkersNotFound
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.overlay import draw_axis, draw_detections, mask_markers, to_display
+from drillnav.registration.overlay import annotate, draw_axis, draw_detections, mask_markers, to_display
 from drillnav.registration.pipeline import LiveCalibration, track_frame
 from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
@@ -95,7 +95,8 @@ def run_registration(args: argparse.Namespace) -> dict:
         out_dir = check_output_dir(args.overlays)
         for img, det in zip(images, detections):
             base = mask_markers(img.pixels_log, det) if args.mask_markers else img.pixels_log
-            bgr = draw_axis(draw_detections(to_display(base), det), img.view, axis_c, cone_half_angle_deg=pe.cone_half_angle_deg)
+            bgr = draw_axis(draw_detections(to_display(base), det), img.view, axis_c, cone_half_angle_deg=pe.cone_half_angle_deg, position_error_mm=pe.position_mm)
+            bgr = annotate(bgr, view_name=img.view_name, predicted_error=(pe.position_mm, pe.angle_deg))
             cv2.imwrite(str(out_dir / f"{Path(img.source_file).stem}-{img.frame_index}.png"), bgr)
         timings["overlays_s"] = time.perf_counter() - t
     return result

@@ -140,6 +140,18 @@ class Judgement:
     def kwire_radius_mm(self) -> float:
         return float(self.result.kwire_radius_mm) if self.result is not None else float("nan")
 
+    def min_clearance_where(self, axis_ct: Line3D) -> tuple[float, tuple[float, float, float]] | None:
+        """Where the clearance is smallest: mm along ``axis_ct`` from its entry into bone, and the point in V; None if not judged."""
+        c = self.result
+        if c is None or c.entry_mm is None:
+            return None
+        judged = np.flatnonzero(c.judged)
+        if not judged.size:
+            return None
+        i = int(judged[np.argmin(c.distance_mm[judged])])
+        point = c.entry_mm + c.along_mm[i] * axis_ct.direction
+        return float(c.along_mm[i]), (float(point[0]), float(point[1]), float(point[2]))
+
 
 def judge_conformance(ct: Volume, axis_ct: Line3D, plan: list[PlanEntry], cache: dict, *, nearest_only: bool = False) -> list[Judgement]:
     """The one conformance judgement (the CLI and the live CT tracker both call it).
@@ -216,7 +228,8 @@ def axis_in_ct_report(
             cv2.imwrite(str(f), img)
             files[name] = str(f)
         mosaic = views_dir / "ct-views.png"
-        cv2.imwrite(str(mosaic), compose_views(views, caption=f"drill axis (cyan), error cone (yellow), plan (green); GC {reg.similarity:.3f}"))
+        judged = [r for r in report["conformance"] if r.get("evaluated") and r["trajectory"] == report.get("nearest_trajectory")]
+        cv2.imwrite(str(mosaic), compose_views(views, caption=f"CT registration GC {reg.similarity:.3f}", verdict=judged[0] if judged else None))
         files["mosaic"] = str(mosaic)
         report["views"] = files
     report["report_s"] = time.perf_counter() - t0

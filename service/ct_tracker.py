@@ -183,8 +183,10 @@ class CtTracker:
         if not judged:
             return None
         j = judged[0]
+        where = j.min_clearance_where(axis_ct)  # for the display: mm along the axis from its entry into bone, and the point in V
         return msg.Conformance(trajectory=j.trajectory, axis_to_planned_entry_mm=j.axis_to_planned_entry_mm, angle_to_plan_deg=j.angle_to_plan_deg,
-                               breach=j.breach, min_clearance_mm=j.min_clearance_mm, kwire_radius_mm=j.kwire_radius_mm)
+                               breach=j.breach, min_clearance_mm=j.min_clearance_mm, kwire_radius_mm=j.kwire_radius_mm,
+                               min_clearance_along_mm=where[0] if where else None, min_clearance_point_mm=where[1] if where else None)
 
     def status(self) -> dict[str, Any]:
         reg = self.registration

@@ -73,6 +73,7 @@ class Daemon:
         self.scp = None
         self.intake = self.audit = self.carried = None
         self.scene_publisher = self.igtl = None  # set by _start_interop when enabled
+        self.display_hub = None
         self.pump: CameraPump | None = None
         self._frame_lock = threading.Condition()
         self._latest_frame: tuple[int, Any] | None = None
@@ -140,6 +141,12 @@ class Daemon:
                                                          ct_tracker=self._ct_tracker(), reliable_limits=limits))
         self._publish_calibration()
         self._start_interop(stack, axis_drill=calibration["axis_drill"], camera=calibration["camera"])
+        from .display_hub import DisplayHub
+
+        tracker = self.node.ct_tracker  # the surgeon's page: its streams from this session, the CT and plan once
+        self.display_hub = stack.enter_context(DisplayHub(session=self.session, prefix=self.prefix,
+                                                          plan=[e.trajectory for e in tracker.plan] if tracker is not None else (),
+                                                          ct=tracker.ct if tracker is not None else None))
         missing = [k for k, v in calibration.items() if v is None]
         self.progress("registration node up" + (f" (uncalibrated: no {' and no '.join(missing)} calibration yet; no axis until installed)" if missing else ""))
         self._start_calibration_jobs(stack)

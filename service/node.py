@@ -42,7 +42,7 @@ from drillnav.registration.fluoro_markers import FluoroDetections, detect_marker
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import MarkerPose, register_markers
 from drillnav.registration.markers import MarkerSet
-from drillnav.registration.overlay import draw_axis, draw_detections, to_display
+from drillnav.registration.overlay import annotate, draw_axis, draw_detections, to_display
 from drillnav.registration.pipeline import LiveCalibration, ReliableLimits, track_frame
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
@@ -411,7 +411,7 @@ class RegistrationNode:
                     k = (name, shot.stamp_ns)
                     if k not in base:
                         base[k] = draw_detections(to_display(shot.image), shot.detections)
-                    bgr = draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg)
+                    bgr = annotate(draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg), view_name=name, stamp_ns=shot.stamp_ns, legend=False)
                     self.session.put(key(self.prefix, "overlay", name), msg.compressed_image(bgr, stamp_ns=stamp, frame_id=f"carm/{name}", fmt="jpeg", quality=80))
             except Exception as exc:  # noqa: BLE001 - a worker survives what it did not foresee
                 self._loop_error("overlay", exc)
