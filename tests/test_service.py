@@ -351,9 +351,11 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         # (Shorter than a DICOM preamble, it might still be being written: the watcher gives it 10 s before refusing it.)
         (tmp_path / "in" / "broken.dcm").write_bytes(b"garbage" * 10)
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 20 and not any("broken.dcm" in e for e in (status := httpx.get(f"{base}/status", timeout=5).json())["device_errors"]):
+        errors: list[str] = []
+        while time.monotonic() - t0 < 20 and not any("broken.dcm" in e for e in errors):
             time.sleep(0.5)
-        assert any("broken.dcm" in e for e in status["device_errors"]), status["device_errors"]
+            errors = httpx.get(f"{base}/status", timeout=5).json()["device_errors"]
+        assert any("broken.dcm" in e for e in errors), errors
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
