@@ -6,11 +6,21 @@ way. The calibration a frame is tracked with is one immutable
 :class:`LiveCalibration` (camera, drill axis and the marker locator built from
 that camera): a service swaps it as a single reference, so no frame ever meets
 a new camera with an old locator.
+
+The joint solve of every marker pose and the drill pose (``joint_solve.py``)
+costs ~17 ms a frame on top of ~10 ms for the rest, too much for every frame
+at 30 frames/s on two cores. So a live caller carries a
+:class:`JointRefinement` from frame to frame: a frame runs the joint solve when
+the registration or calibration changed or the last solve is older than
+``joint_period_ns``; the frames between use the marker poses that solve refined
+(mirror settled, normals fixed by the camera) in the Horn + corner PnP path, and
+its covariance (carried with the drill, about a pivot fixed in D) for the
+predicted error. One frame (``drillnav register``) always runs the joint solve.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,10 +30,13 @@ from .errors import MarkersNotFound
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
+from .transforms import apply, invert
 from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
 from .video_markers import VideoDetections, VideoMarkerLocator
 
-__all__ = ["LiveCalibration", "FrameAxis", "ReliableLimits", "track_frame"]
+__all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "JOINT_PERIOD_NS"]
+
+JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -49,6 +62,32 @@ class ReliableLimits:
 
 
 @dataclass(frozen=True, kw_only=True)
+class JointRefinement:
+    """The last joint solve, carried between live frames.
+
+    ``source_poses`` and ``calibration`` are the registration and calibration
+    it was solved with (compared by identity: either swapped means a new solve);
+    ``poses`` the marker poses it refined; ``covariance_drill`` (6, 6) of the
+    drill pose about ``pivot_drill_mm`` (3,), a point fixed in frame D (mm);
+    ``at_ns`` when it ran (a monotonic clock, ns).
+    """
+
+    source_poses: tuple[MarkerPose, ...]
+    calibration: LiveCalibration
+    poses: tuple[MarkerPose, ...]
+    covariance_drill: NDArray[np.float64]
+    pivot_drill_mm: NDArray[np.float64]
+    at_ns: int
+
+
+def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tuple[MarkerPose, ...]:
+    """The markers the joint solve used, at its poses (mirror settled); the others as they were."""
+    used = set(reg.used_ids)
+    return tuple(replace(p, carm_from_marker=reg.carm_from_marker[p.marker_id], mirror_carm_from_marker=None, converged=True)
+                 if p.marker_id in used and p.marker_id in reg.carm_from_marker else p for p in poses)
+
+
+@dataclass(frozen=True, kw_only=True)
 class FrameAxis:
     """One frame's result.
 
@@ -62,6 +101,7 @@ class FrameAxis:
     axis_carm: Line3D
     axis_full_carm: Line3D
     predicted_error: PredictedError
+    refinement: JointRefinement | None = None  # hand it to the next frame's track_frame
 
     @property
     def working_point_carm_mm(self) -> NDArray[np.float64]:
@@ -69,10 +109,13 @@ class FrameAxis:
 
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
-                limits: ReliableLimits = ReliableLimits()) -> FrameAxis:
+                limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
+                joint_period_ns: int = JOINT_PERIOD_NS) -> FrameAxis:
     """The drill axis in C from one camera frame and the fluoroscopy marker poses.
 
     ``limits``: the 90 % bounds above which the axis is flagged unreliable (``predicted_error.reliable``).
+    ``refinement``, ``now_ns``: the previous frame's :class:`JointRefinement` and a monotonic time (live callers;
+    see the module docstring); without them the frame runs the joint solve.
 
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
@@ -80,10 +123,24 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     video = calibration.locator.locate(image)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
-    reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
+    fresh = (refinement is None or refinement.source_poses is not poses or refinement.calibration is not calibration
+             or now_ns - refinement.at_ns >= joint_period_ns)
+    if fresh:
+        reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
+        refinement = None
+        if reg.covariance_drill is not None and reg.pivot_carm_mm is not None:
+            refinement = JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(poses, reg),
+                                         covariance_drill=reg.covariance_drill, pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm),
+                                         at_ns=now_ns)
+    else:
+        reg = register_video_to_fluoro(video, refinement.poses, marker_set, calibration.camera, joint=False)
+        reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
+                      method="horn+pnp on joint-refined markers")
+        poses = refinement.poses
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
     work = axis.closest_point(centroid)
     pe = predicted_axis_error(video, poses, reg, calibration.axis_drill, working_point_carm_mm=work,
                               position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg)  # vectorised: ~1 ms
-    return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe)
+    return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
+                     refinement=refinement)

@@ -116,6 +116,7 @@ class RegistrationNode:
         self.last_error: str | None = None
         self._registration_state = "waiting for fluoroscopy"
         self._sequence = 0
+        self._refinement = None  # the last joint solve, carried between frames (registration/pipeline.py)
         self._frame: deque = deque(maxlen=1)
         self._shots_in: deque = deque()
         self._wake = threading.Condition()
@@ -366,7 +367,9 @@ class RegistrationNode:
         calibration, poses = self.calibration, self.poses  # one read each: a swap mid-frame does not mix calibrations
         if calibration is None or not poses:
             return
-        fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=self.reliable_limits)
+        fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=self.reliable_limits,
+                         refinement=self._refinement, now_ns=time.monotonic_ns())
+        self._refinement = fa.refinement  # the frame thread's alone
         reg, pe = fa.registration, fa.predicted_error
         now = time.time_ns()
         error = msg.PredictedError(position_mm=float(pe.position_mm), angle_deg=float(pe.angle_deg),

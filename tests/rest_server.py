@@ -34,6 +34,9 @@ class SmallState:
     def status(self):
         return {"recordings": list(self.running), "refreshes": self.refreshes}
 
+    def health(self):
+        return None  # streams flowing: /health answers 200 (the test server has no streams to stall)
+
     def registration(self):
         return None
 

@@ -54,7 +54,7 @@ class BusDaemon:
         for name, view in VIEWS.items():
             img = (1.0 + 0.3 * rng.standard_normal((view.rows, view.columns))).astype(np.float32)
             stamp = time.time_ns()
-            self.session.put(key(PREFIX, "fluoro_shot"), msg.fluoro_shot(img, view, stamp_ns=stamp, view_name=name))
+            self.session.put(key(PREFIX, "fluoro_shot"), msg.FluoroShot.build(img, view, stamp_ns=stamp, view_name=name).to_bytes())
             self.session.put(key(PREFIX, "fluoro_image", name), msg.compressed_image(to_display(img), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
         self.session.put(key(PREFIX, "fluoro_markers"), msg.encode_json({"stamp_ns": time.time_ns(), "registration_id": 1, "views": list(VIEWS),
                                                                            "markers": [{"id": i, "converged": True} for i in (1, 22, 29, 36)]}))

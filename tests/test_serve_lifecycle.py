@@ -175,7 +175,7 @@ def test_start_up_failures_are_one_line_and_a_non_zero_exit(tmp_path):
             assert len(run.err) == 1 and run.err[0].startswith("drillnav serve: error: "), (name, run.err)
             for word in FAILURES[name][2]:
                 assert word in run.err[0], (name, run.err[0])
-            if name != "bad config":
+            if name not in ("bad config", "invalid zenoh endpoint"):  # refused when the settings are read, before the first line
                 assert run.out[0][1] == "drillnav: starting on real devices ...", (name, run.out)
                 took = ended[name] - run.out[0][0]
                 assert took < EXIT_WITHIN_S, f"{name}: {took:.1f} s from the first line to the exit"

@@ -32,7 +32,8 @@ def main() -> None:
     shots, carm_from_drill = [], None
     for topic, _, data in iter_recording(ROOT / "recordings" / "twin-seed21.mcap"):
         if topic.endswith("fluoro/shot"):
-            shots.append(msg.decode_fluoro_shot(data))
+            shot = msg.FluoroShot.from_bytes(data)
+            shots.append((shot.image_log, shot.carm_view, shot.stamp_ns, shot.view))
         elif topic.endswith("twin/truth") and carm_from_drill is None:
             carm_from_drill = np.asarray(msg.decode_json(data)["carm_from_drill"])
     axis_drill = make_scene(seed=21, render=False).calibrated_axis_drill
