@@ -44,6 +44,9 @@ def main() -> None:
     ap.add_argument("--ct", action="store_true", help="with the live video-CT mode (the twin's 2 mm CT); the CT view is then shown too")
     ap.add_argument("--screenshots", type=Path, help="write display-fluoro.png (and display-ct.png with --ct) here")
     ap.add_argument("--start-timeout", type=float, default=900.0, help="seconds to wait for the daemon's first axis (and CT registration)")
+    ap.add_argument("--warmup", type=float, default=90.0,
+                    help="seconds after the first axis before measuring: the twin renders its camera loop as it streams during its "
+                         "first minute (about one core), a load a real camera does not add (0: measure at once)")
     args = ap.parse_args()
     exe = shutil.which("chromium")
     if exe is None:
@@ -73,6 +76,7 @@ def main() -> None:
                     pass
                 time.sleep(0.5)
             startup_s = time.monotonic() - t0
+            time.sleep(args.warmup)
             with sync_playwright() as pw:
                 browser = pw.chromium.launch(executable_path=exe, headless=True, args=CHROMIUM_ARGS)
                 page = browser.new_page(viewport={"width": 1600, "height": 1000}, bypass_csp=True)

@@ -56,6 +56,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--ct", action="store_true", help="with the live video-CT mode on (the twin's 2 mm CT re-registered after each shot)")
     ap.add_argument("--shot-every", type=float, default=0.0, help="a new twin C-arm shot every this many seconds during the run (0: none)")
+    ap.add_argument("--warmup", type=float, default=90.0,
+                    help="seconds after the first axis before measuring: the twin renders its camera loop as it streams during its "
+                         "first minute (about one core), a load a real camera does not add (0: measure from the first axis)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
@@ -69,6 +72,7 @@ def main() -> None:
                 t0 = time.monotonic()
                 while not lat and time.monotonic() - t0 < 120:
                     time.sleep(0.2)
+                time.sleep(args.warmup)
                 lat.clear()
                 status0 = httpx.get("http://127.0.0.1:18090/status", timeout=5).json()
                 cpu0, t_start = cpu_s(proc.pid), time.monotonic()

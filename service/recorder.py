@@ -261,7 +261,7 @@ class Recorder:
                  rotate_bytes: int = 512 * 1024 * 1024, rotate_seconds: float = 3600.0, camera_fps: float | None = None,
                  camera_jpeg_quality: int | None = None, queue_size: int = 256, max_age_s: float | None = None,
                  max_total_bytes: int | None = None, resume_free_bytes: int = 64 * 1024 * 1024, resume_check_s: float = 2.0,
-                 on_event: OnEvent = _no_event, carried_state: CarriedState | None = None) -> None:
+                 on_event: OnEvent = _no_event, carried_state: CarriedState | None = None, overlay_fps: float | None = None) -> None:
         if not name.replace("-", "").replace("_", "").isalnum():
             raise ValueError(f"recording name '{name}' may hold only letters, digits, '-' and '_'")
         if rotate_bytes <= 0 or rotate_seconds <= 0:
@@ -275,6 +275,13 @@ class Recorder:
         self.prefix, self.folder, self.name = prefix, Path(folder), name
         self.chunk_size, self.rotate_bytes, self.rotate_ns = chunk_size, rotate_bytes, int(rotate_seconds * 1e9)
         self.camera_period_ns = int(1e9 / camera_fps) if camera_fps else 0
+        # The node's overlay JPEGs are derived (shots + axes + scene annotations redraw them): kept at a low rate per view.
+        if overlay_fps is not None and overlay_fps <= 0:
+            raise ValueError(f"overlay_fps must be positive or None (every overlay), got {overlay_fps}")
+        self.overlay_period_ns = int(1e9 / overlay_fps) if overlay_fps else 0
+        self._overlay_prefix = key(prefix, "overlay", "x")[:-1]
+        self._next_overlay_ns: dict[str, int] = {}
+        self.overlays_skipped = 0
         self.camera_jpeg_quality = camera_jpeg_quality
         self.max_age_s, self.max_total_bytes = max_age_s, max_total_bytes
         self.resume_free_bytes, self.resume_check_ns = resume_free_bytes, int(resume_check_s * 1e9)
@@ -312,7 +319,8 @@ class Recorder:
                    rotate_seconds=s.rotate_minutes * 60.0, camera_fps=s.camera_fps or None, camera_jpeg_quality=s.camera_jpeg_quality or None,
                    queue_size=s.queue_size, max_age_s=s.max_age_days * 86400.0 if s.max_age_days else None,
                    max_total_bytes=int(s.max_total_gb * 1e9) if s.max_total_gb else None,
-                   resume_free_bytes=int(s.resume_free_mb * 1024 * 1024), on_event=on_event, carried_state=carried_state)
+                   resume_free_bytes=int(s.resume_free_mb * 1024 * 1024), on_event=on_event, carried_state=carried_state,
+                   overlay_fps=s.overlay_fps or None)
 
     def __enter__(self) -> "Recorder":
         return self
@@ -330,6 +338,11 @@ class Recorder:
                 return
             # Due times advance by the period (not from this frame), so jittery arrivals keep the mean rate.
             self._next_frame_ns = self._next_frame_ns + self.camera_period_ns if now - self._next_frame_ns < self.camera_period_ns else now + self.camera_period_ns
+        elif self.overlay_period_ns and key_expr.startswith(self._overlay_prefix):
+            if now < self._next_overlay_ns.get(key_expr, 0):
+                self.overlays_skipped += 1
+                return
+            self._next_overlay_ns[key_expr] = now + self.overlay_period_ns
         try:
             self._queue.put_nowait((key_expr, now, sample.payload.to_bytes()))
         except queue.Full:

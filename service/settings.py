@@ -153,6 +153,7 @@ class RecordingSettings(_Section):
     # The disk budget (docs/recordings.md): 720p30 camera frames as sent are ~12-16 GB/h; these keep a case under 3 GB/h.
     camera_fps: float = Field(10.0, ge=0, le=120, description="camera frames recorded per second; 0: every frame")
     camera_jpeg_quality: int = Field(75, ge=0, le=100, description="camera frames re-encoded at this JPEG quality; 0: as received")
+    overlay_fps: float = Field(0.2, ge=0, le=30, description="overlay JPEGs recorded per second per view (derived: the shots, axes and scene annotations redraw them); 0: every one")
     queue_size: int = Field(256, ge=8, description="messages waiting for the writer thread before new ones are dropped (counted)")
     max_age_days: float = Field(30.0, ge=0, description="retention: finished files older than this are removed at start and each rotation; 0: no age limit")
     max_total_gb: float = Field(50.0, ge=0, description="retention: the oldest finished files are removed while the folder holds more; 0: no cap")
