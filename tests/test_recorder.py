@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
 import pytest
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
@@ -334,7 +335,8 @@ def test_a_writer_behind_drops_counts_and_reports_never_blocking_the_bus(tmp_pat
         rec = Recorder(session=b, prefix=P, folder=tmp_path, name="behind", camera_jpeg_quality=75, queue_size=2, on_event=lambda lvl, m: events.append((lvl, m)))
         time.sleep(0.5)
         for _ in range(60):
-            a.put(key(P, "camera_image"), frame)
+            # Blocking puts: zenoh itself drops under congestion by default, and this test counts the recorder's drops alone.
+            a.put(key(P, "camera_image"), frame, congestion_control=zenoh.CongestionControl.BLOCK)
         _wait(lambda: rec.messages + rec.dropped >= 60)
         (path,) = rec.close()
     st = rec.status()
