@@ -57,7 +57,7 @@ def main() -> None:
         d = Path(d)
         port = free_port()
         base = f"http://127.0.0.1:{port}"
-        (d / "c.toml").write_text(f'twin = true\n[zenoh]\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n[api]\nport = {port}\ntoken = "bench-token"\n'
+        (d / "c.toml").write_text(f'twin = true\n[zenoh]\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n[api]\nport = {port}\ntoken = "bench-token-of-16-chars"\n'
                                   f'[dicom]\nwatch_folder = "{d / "in"}"\nscp_port = {free_port()}\n[recording]\nfolder = "{d / "rec"}"\n[calibration]\nfolder = "{d / "cal"}"\n'
                                   + ("[twin_scene]\nct_voxel_mm = 2.0\n" if args.ct else ""))
         proc = subprocess.Popen([sys.executable, "-m", "drillnav.service.cli", "serve", "--config", str(d / "c.toml")], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
