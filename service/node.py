@@ -368,7 +368,7 @@ class RegistrationNode:
         if calibration is None or not poses:
             return
         fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=self.reliable_limits,
-                         refinement=self._refinement, now_ns=time.monotonic_ns())
+                         refinement=self._refinement, now_ns=stamp)  # capture time: a replay re-solves on the same frames
         self._refinement = fa.refinement  # the frame thread's alone
         reg, pe = fa.registration, fa.predicted_error
         now = time.time_ns()
