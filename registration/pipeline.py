@@ -69,7 +69,7 @@ class JointRefinement:
     it was solved with (compared by identity: either swapped means a new solve);
     ``poses`` the marker poses it refined; ``covariance_drill`` (6, 6) of the
     drill pose about ``pivot_drill_mm`` (3,), a point fixed in frame D (mm);
-    ``at_ns`` when it ran (a monotonic clock, ns).
+    ``at_ns`` when it ran (the caller's clock, ns: the node gives the capture stamp, so a replay re-solves on the same frames).
     """
 
     source_poses: tuple[MarkerPose, ...]
