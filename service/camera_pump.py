@@ -38,24 +38,32 @@ class CameraPump:
         self.errors: list[str] = []
         self.connected = False
         self.losses = 0
+        self.lost: str | None = None  # while the camera is lost: why (what /health says at once, not after a stall)
 
     def run(self) -> None:
-        lost = False
         while not self.stop.is_set():
             try:
                 with self.device as cam:
                     self.connected = True
-                    if lost:
+                    if self.lost is not None:
+                        self.lost = None
                         self.on_event("info", f"camera {self.name} is back")
-                        lost = False
                     while not self.stop.is_set():
-                        self.on_frame(cam.read())
+                        try:
+                            frame = cam.read()
+                        except DrillnavError as exc:
+                            self._lose(exc)  # said before the device is closed: closing it can take a while
+                            raise
+                        self.on_frame(frame)
             except DrillnavError as exc:
-                self.connected = False
-                if not lost:
-                    lost = True
-                    self.losses += 1
-                    message = f"{exc}; retrying every {self.retry_s:g} s"
-                    self.errors.append(message)
-                    self.on_event("error", message)
+                self._lose(exc)
                 self.stop.wait(self.retry_s)
+
+    def _lose(self, exc: DrillnavError) -> None:
+        """Report a loss once (not once per failed reopen)."""
+        self.connected = False
+        if self.lost is None:
+            self.losses += 1
+            self.lost = f"{exc}; retrying every {self.retry_s:g} s"
+            self.errors.append(self.lost)
+            self.on_event("error", self.lost)

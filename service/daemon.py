@@ -191,7 +191,8 @@ class Daemon:
             self.progress("building the digital twin ...")
             scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
             marker_set = scene.marker_set
-            self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed)
+            self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed,
+                                                 unplug_every_s=s.twin_scene.camera_unplug_every_s, unplug_s=s.twin_scene.camera_unplug_s)
             send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
             self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
             self.progress("digital twin up")
@@ -434,6 +435,9 @@ class Daemon:
         if not self.started:
             return "starting" if self._stack is None else "stopping"
         now = time.monotonic_ns()
+        lost = self.pump.lost if self.pump is not None else None
+        if lost is not None:  # the pump saw the device go: said at once, not a stall period later
+            return f"camera stalled: {lost}"
         if now - self._last_frame_ns > int(self.stall_s * 1e9):
             why = f" ({self.errors[-1]})" if self.errors else ""
             return f"camera stalled: no frame for {(now - self._last_frame_ns) / 1e9:.1f} s{why}"

@@ -169,6 +169,15 @@ class TwinSettings(_Section):
     markers: int = Field(5, ge=3, le=7)
     views: str = "inlet,outlet"
     ct_voxel_mm: float | None = Field(None, ge=0.5, le=4.0, description="the twin's preoperative CT for the live video-CT mode (voxel size, e.g. 2.0); unset: off")
+    # A soak's camera faults, on the daemon's own reconnection path (drivers/sim/devices.py TwinDrillCamera).
+    camera_unplug_every_s: float | None = Field(None, gt=0, description="the twin camera's cable is pulled this long after it first opened, and every this long after; unset: never")
+    camera_unplug_s: float = Field(3.0, gt=0, description="how long each scheduled unplug lasts (shorter than camera_unplug_every_s)")
+
+    @model_validator(mode="after")
+    def _unplug_fits(self) -> "TwinSettings":
+        if self.camera_unplug_every_s is not None and self.camera_unplug_s >= self.camera_unplug_every_s:
+            raise ValueError(f"twin_scene.camera_unplug_s ({self.camera_unplug_s:g}) must be shorter than camera_unplug_every_s ({self.camera_unplug_every_s:g})")
+        return self
 
 
 class CtSettings(_Section):

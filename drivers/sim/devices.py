@@ -13,6 +13,7 @@ from its first frame; from the second pass on, every frame is a new pose.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -61,13 +62,23 @@ class TwinDrillCamera:
     ``loop_frames`` poses along a closed path through ``keyposes`` random drill
     poses; frame ``k`` of the loop is rendered once, by the camera's own render
     thread, and served again on every later pass.
+
+    ``unplug_every_s``: the cable is pulled ``unplug_every_s`` after the camera
+    was first opened and every ``unplug_every_s`` after that, for ``unplug_s``
+    each time (None: only ``unplug()`` pulls it).
     """
 
-    def __init__(self, *, scene: Scene, fps: float = 30.0, loop_frames: int = 90, keyposes: int = 4, seed: int = 0) -> None:
+    def __init__(self, *, scene: Scene, fps: float = 30.0, loop_frames: int = 90, keyposes: int = 4, seed: int = 0,
+                 unplug_every_s: float | None = None, unplug_s: float = 3.0) -> None:
         if fps <= 0:
             raise ValueError(f"fps must be positive, got {fps}")
         if loop_frames < 1:
             raise ValueError(f"loop_frames must be >= 1, got {loop_frames}")
+        if unplug_every_s is not None and not 0 < unplug_s < unplug_every_s:
+            raise ValueError(f"unplug_s must be positive and shorter than unplug_every_s ({unplug_every_s}), got {unplug_s}")
+        self.unplug_every_s, self.unplug_s = unplug_every_s, unplug_s
+        self._first_open = None  # monotonic s of the first open: the schedule's origin
+        self._pulled = False  # unplug() without plug()
         rng = np.random.default_rng(seed)
         self.poses = freehand_loop(scene, rng, loop_frames=loop_frames, keyposes=keyposes)
         self.period_s = 1.0 / fps
@@ -90,7 +101,30 @@ class TwinDrillCamera:
         with self._rendered:
             return len(self._frames)
 
+    def unplug(self) -> None:
+        """Pull the cable: the next ``read`` raises :class:`CameraUnavailable`, and so does opening, until ``plug()``."""
+        self._pulled = True
+
+    def plug(self) -> None:
+        self._pulled = False
+
+    @property
+    def plugged(self) -> bool:
+        """False while pulled by ``unplug()`` or inside a scheduled unplug window."""
+        if self._pulled:
+            return False
+        if self.unplug_every_s is None or self._first_open is None:
+            return True
+        t = time.monotonic() - self._first_open
+        k = math.floor(t / self.unplug_every_s)
+        return k < 1 or t - k * self.unplug_every_s >= self.unplug_s
+
     def __enter__(self) -> "TwinDrillCamera":
+        if not self.plugged:
+            # What cv2.VideoCapture on a missing /dev/videoN comes to in the webcam driver.
+            raise CameraUnavailable("camera twin cannot be opened (unplugged)")
+        if self._first_open is None:
+            self._first_open = time.monotonic()
         self._open = True
         self._next = time.monotonic()
         if len(self._frames) < len(self.poses) and self._render_error is None:
@@ -131,6 +165,7 @@ class TwinDrillCamera:
         the one served last again until then (the very first read waits for the first render)."""
         if not self._open:
             raise RuntimeError("the twin camera is not open")
+        self._check_plugged()
         with self._rendered:
             self._rendered.wait_for(lambda: self._frames or self._render_error is not None or not self._open)
             if self._render_error is not None:
@@ -143,6 +178,7 @@ class TwinDrillCamera:
             time.sleep(delay)
         else:
             self._next = time.monotonic()
+        self._check_plugged()  # pulled while the frame was awaited: no frame, as from a real camera
         with self._rendered:  # chosen when due, so a frame rendered meanwhile is served at once
             following = (self._k + 1) % len(self.poses)
             if following < len(self._frames):
@@ -151,6 +187,11 @@ class TwinDrillCamera:
             image = self._frames[k]
         self._n += 1
         return CameraFrame(image=image, stamp_ns=time.time_ns(), frame_id=self._n, carm_from_drill=self.poses[k])
+
+
+    def _check_plugged(self) -> None:
+        if not self.plugged:
+            raise CameraUnavailable("camera twin stopped delivering frames (unplugged)")
 
 
 class TwinCArm:
