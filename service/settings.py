@@ -1,6 +1,9 @@
 """The daemon's settings: one object, from a TOML file and DRILLNAV_* environment variables.
 
-Environment wins over the file (``DRILLNAV_API__PORT=8081``). Unknown keys and
+Precedence, highest first: the arguments ``load_settings`` is given (the CLI's
+flags), then ``DRILLNAV_*`` environment variables (``DRILLNAV_API__PORT=8081``),
+then the TOML file, then the defaults; sections merge key by key, so
+``DRILLNAV_API__PORT`` keeps the file's ``[api] token``. Unknown keys and
 invalid values are refused with the field named: a medical device must not
 silently replace a bad setting with a default.
 """
@@ -8,11 +11,12 @@ silently replace a bad setting with a default.
 from __future__ import annotations
 
 import tomllib
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, InitSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
 
 from drillnav.registration.errors import DrillnavError
 
@@ -235,6 +239,18 @@ class Settings(BaseSettings):
     foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
     ros2: Ros2Settings = Field(default_factory=Ros2Settings)
 
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource) -> tuple[PydanticBaseSettingsSource, ...]:
+        # The file's values as a source below the environment: given as constructor arguments they would beat it
+        # (pydantic-settings ranks init arguments first), and an operator's DRILLNAV_* override would be silently ignored.
+        return init_settings, env_settings, InitSettingsSource(settings_cls, init_kwargs=_FILE_VALUES.get())
+
+
+# The config file's values while load_settings builds a Settings (read by settings_customise_sources).
+_FILE_VALUES: ContextVar[dict] = ContextVar("drillnav_settings_file_values", default={})
+
 
 class SettingsError(DrillnavError):
     """A configuration that cannot be used; the message names the field."""
@@ -249,11 +265,13 @@ def load_settings(config: Path | None = None, **overrides) -> Settings:
             raise SettingsError(f"config file {config} does not exist") from None
         except tomllib.TOMLDecodeError as exc:
             raise SettingsError(f"{config}: not valid TOML ({exc})") from None
-    data.update({k: v for k, v in overrides.items() if v is not None})
+    token = _FILE_VALUES.set(data)
     try:
-        return Settings(**data)
+        return Settings(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as exc:
         raise SettingsError(describe_validation_error(exc)) from None
+    finally:
+        _FILE_VALUES.reset(token)
 
 
 def describe_validation_error(exc: ValidationError, *, prefix: str = "") -> str:
