@@ -17,8 +17,6 @@ import argparse
 import os
 import re
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -27,6 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _daemon import free_port, stop  # noqa: E402
 from _report import figure, report  # noqa: E402
 
 from drillnav.schemas.topics import key  # noqa: E402
@@ -34,12 +33,6 @@ from drillnav.service.bus import open_session  # noqa: E402
 
 BAR_FIRST_AXIS_S = 10.0
 CLI_COMMANDS = ([], ["markers"], ["sim"], ["register"], ["calibrate"], ["serve"], ["listen"], ["replay"])
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def drillnav_command() -> list[str]:
@@ -85,12 +78,7 @@ def first_axis(folder: Path, numba_cache: Path, *, ct: bool, timeout_s: float) -
             seconds = time.monotonic() - t0
             cpu = cpu_s(proc.pid)
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            stop(proc)
     return {"seconds": seconds, "cpu_s": cpu, "lines": [(t, l) for t, l in lines if t <= seconds]}
 
 
