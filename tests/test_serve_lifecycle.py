@@ -137,6 +137,8 @@ def _port_of(cfg: Path, what: str) -> int:
     return {"api": s.api.port, "dicom": s.dicom.scp_port, "zenoh": int(s.zenoh.listen[0].rsplit(":", 1)[1])}[what]
 
 
+NOT_A_TCP_PORT = 65536  # one past the last TCP port: the settings refuse it, so nothing ever binds it
+
 FAILURES = {
     # name: (sections, port to hold taken, words the one line must hold)
     "REST port taken": ({}, "api", ["REST API", "Address already in use"]),
@@ -144,7 +146,7 @@ FAILURES = {
     "DICOM port taken": ({}, "dicom", ["DICOM", "Address already in use"]),
     "invalid zenoh endpoint": ({"zenoh": 'listen = ["tcp/not a host:port"]'}, None, ["zenoh", "tcp/not a host:port"]),
     "camera device missing": ({"camera": 'device = "/dev/video-drillnav-none"'}, None, ["camera.device", "/dev/video-drillnav-none"]),
-    "bad config": ({"api": "port = 99999"}, None, ["api.port"]),
+    "bad config": ({"api": f"port = {NOT_A_TCP_PORT}"}, None, ["api.port"]),
     "calibration file missing": ({"camera": 'device = "{cam}"\ncalibration = "{missing}"\ndrill_calibration = "{missing}"'}, None, ["calibration", "missing.json"]),
 }
 

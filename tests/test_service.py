@@ -225,7 +225,7 @@ def test_rest_api_over_http(http_server):
 
 def test_settings_refuse_bad_values(tmp_path, monkeypatch):
     cfg = tmp_path / "d.toml"
-    cfg.write_text('[api]\nport = 99999\n')
+    cfg.write_text(f"[api]\nport = {65535 + 1}\n")  # past the last TCP port: refused by the settings, never bound
     with pytest.raises(SettingsError, match="api.port"):
         load_settings(cfg)
     cfg.write_text('[api]\nprot = 8080\n')
