@@ -172,8 +172,17 @@ def main(argv: list[str] | None = None) -> int:
                     raise SystemExit(f"the daemon did not stream an axis (rc {proc.poll()}): {tail}")
                 time.sleep(0.2)
             first_axis_s = time.monotonic() - t_start
-            print(f"first axis {first_axis_s:.1f} s after start; soaking {args.minutes:g} min", flush=True)
+            # The twin camera keeps the frames of its loop as it renders them (~250 MB at 720p): memory the product
+            # does not have. The soak, and its RSS baseline, begin once the loop is whole.
+            while (rendered := client.get("/status").json()["twin_camera_rendered"])[0] < rendered[1]:
+                if proc.poll() is not None or time.monotonic() - t_start > args.first_axis_timeout:
+                    raise SystemExit(f"the twin camera did not render its loop ({rendered}; daemon rc {proc.poll()})")
+                time.sleep(1.0)
+            warmup_s = time.monotonic() - t_start
+            print(f"first axis {first_axis_s:.1f} s after start, the twin's camera loop rendered after {warmup_s:.1f} s; "
+                  f"soaking {args.minutes:g} min", flush=True)
             rss_start = rss_mb(proc.pid)
+            rss_each_minute: list[float] = []
             st0 = client.get("/status").json()
             t0 = time.monotonic()
             end = t0 + args.minutes * 60
@@ -207,8 +216,9 @@ def main(argv: list[str] | None = None) -> int:
                 if now >= next_progress:
                     with seen.lock:
                         n_axes = len(seen.axes)
+                    rss_each_minute.append(round(rss_mb(proc.pid), 1))
                     print(f"  {(now - t0) / 60:4.1f} min: {n_axes} axes, {shots} shots, {len(garbage_at)} garbage bursts, "
-                          f"{len(seen.unplugs())} unplugs, RSS {rss_mb(proc.pid):.0f} MB", flush=True)
+                          f"{len(seen.unplugs())} unplugs, RSS {rss_each_minute[-1]:.0f} MB", flush=True)
                     next_progress += 60
                 time.sleep(0.1)
             time.sleep(GARBAGE_WINDOW_S)  # the last burst's window
@@ -216,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
             health = client.get("/health")
             rss_end = rss_mb(proc.pid)
             installer.join(timeout=1)
-        result = summarise(args, seen, t0=t0, first_axis_s=first_axis_s, st0=st0, st=st, health=health, rss=(rss_start, rss_end),
+        result = summarise(args, seen, t0=t0, first_axis_s=first_axis_s, warmup_s=warmup_s, rss_each_minute=rss_each_minute, st0=st0, st=st, health=health, rss=(rss_start, rss_end),
                            garbage_at=garbage_at, shots=shots, garbage_sent=garbage_sent, installed=installed, failures=failures)
         for k, v in result.items():
             print(f"  {k:34s} {v}")
@@ -228,14 +238,14 @@ def main(argv: list[str] | None = None) -> int:
         err.close()
 
 
-def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, st0: dict, st: dict, health: httpx.Response, rss: tuple[float, float],
+def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, warmup_s: float, rss_each_minute: list[float], st0: dict, st: dict, health: httpx.Response, rss: tuple[float, float],
               garbage_at: list[float], shots: int, garbage_sent: int, installed: list[str], failures: list[str]) -> dict:
     with seen.lock:
         axes = [a for a in seen.axes if a[0] >= t0]
         events = [e for t, e in seen.events if t >= t0]
     arrivals = [t for t, _ in axes]
     gaps = gaps_s(arrivals)
-    unplugs = [u for u in seen.unplugs() if u["lost"] >= t0]
+    unplugs = [u for u in seen.unplugs() if u["back"] is None or u["back"] >= t0]  # every window that reaches into the soak
     windows, resumes = [], []
     for u in unplugs:
         # The window: from the loss to the first axis after the camera came back (to the end if it never did).
@@ -257,6 +267,7 @@ def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, st0: dict, st
     }
     return {
         "minutes": args.minutes, "load_avg_1min_end": round(os.getloadavg()[0], 2), "first_axis_s": round(first_axis_s, 1),
+        "twin_loop_rendered_s": round(warmup_s, 1),
         "frames_captured": st["frames_received"] - st0["frames_received"], "frames_on_bus_seen": seen.frames_on_bus,
         "frames_dropped": st["frames_dropped"] - st0["frames_dropped"],
         "axes_published": st["axes_published"] - st0["axes_published"], "axes_received": len(axes),
@@ -269,6 +280,7 @@ def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, st0: dict, st
         "unplugs": len(unplugs), "unplug_windows_s": [round(hi - lo, 2) if hi != float("inf") else "never back" for lo, hi in windows],
         "resume_after_replug_s": resumes,
         "rss_mb_start": round(rss_start, 1), "rss_mb_end": round(rss_end, 1), "rss_growth_pct": round(growth, 1),
+        "rss_mb_each_minute": rss_each_minute,
         "shots_sent": shots, "shots": {k: st["shots"][k] - st0["shots"][k] for k in st["shots"]},
         "registrations": st["registrations"] - st0["registrations"], "registration_failures": st["registration_failures"],
         "bad_messages": st["bad_messages"], "thread_restarts": st["thread_restarts"], "loop_errors": st["loop_errors"],

@@ -469,6 +469,8 @@ class Daemon:
         st.update({"twin": self.settings.twin, "recordings": list(self._recorders), "device_errors": self.errors[-5:],
                    "recorders": {n: dataclasses.asdict(r.status()) for n, r in list(self._recorders.items())},
                    "topics": {n: key(self.prefix, n, "<view>") if "*" in t.suffix else key(self.prefix, n) for n, t in TOPICS.items()}})
+        if self.settings.twin:  # the twin camera renders its loop as it streams: its memory grows until the loop is whole
+            st["twin_camera_rendered"] = [self.camera_device.rendered_frames, len(self.camera_device.poses)]
         return st
 
     def registration(self) -> dict[str, Any] | None:

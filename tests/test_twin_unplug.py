@@ -101,5 +101,7 @@ def test_a_scheduled_unplug_is_reported_and_the_axis_resumes_without_a_restart(t
             assert wait_for(lambda: len([t for t in axes if t > t_back]) >= 10, 15), "the axis stream did not resume"
             assert wait_for(lambda: client.get("/health").status_code == 200, 5), client.get("/health").text
             assert camera_thread.is_alive() and d.pump.losses == losses_before + 1 and d.node.counters.thread_restarts == 0
+            rendered, loop = client.get("/status").json()["twin_camera_rendered"]  # what the soak waits on before its RSS baseline
+            assert 1 <= rendered <= loop == len(d.camera_device.poses)
             with lock:  # reported once per unplug, not once per retry
                 assert sum(t > t_ready and e["level"] == "error" and "camera twin" in e["message"] for t, e in events) == 1
