@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import socket
 import subprocess
+from pathlib import Path
 
 
 def free_port() -> int:
@@ -24,3 +25,15 @@ def stop(proc: subprocess.Popen, *, grace_s: float = 30.0) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+
+
+def daemon_config(folder: Path, *, token: str, top: str = "", **sections: str) -> tuple[Path, str, int, int]:
+    """``folder/drillnav.toml`` on free ports with its folders inside ``folder``; ``top`` goes before the sections,
+    ``sections`` add or replace whole ones (``twin_scene="seed = 3"``). Returns (path, zenoh endpoint, REST port, DICOM port)."""
+    ep, api_port, dicom_port = f"tcp/127.0.0.1:{free_port()}", free_port(), free_port()
+    body = {"zenoh": f'listen = ["{ep}"]', "api": f'port = {api_port}\ntoken = "{token}"',
+            "dicom": f'watch_folder = "{folder / "in"}"\nscp_port = {dicom_port}', "recording": f'folder = "{folder / "rec"}"',
+            "calibration": f'folder = "{folder / "cal"}"', **sections}
+    path = folder / "drillnav.toml"
+    path.write_text(top + "".join(f"[{name}]\n{text}\n" for name, text in body.items()))
+    return path, ep, api_port, dicom_port

@@ -38,7 +38,7 @@ from drillnav.service.bus import open_session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _daemon import free_port, stop  # noqa: E402
+from _daemon import daemon_config, stop  # noqa: E402
 from twin_images import board_views  # noqa: E402  (the calibration tests' own board renderer)
 
 TOKEN = "soak-token-1-of-16-chars"
@@ -147,12 +147,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, stop_soak)
     work = Path(tempfile.mkdtemp(prefix="drillnav-soak-"))
-    ep, api_port = f"tcp/127.0.0.1:{free_port()}", free_port()
-    cfg = work / "drillnav.toml"
-    cfg.write_text(f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "{TOKEN}"\n'
-                   f'[dicom]\nwatch_folder = "{work / "in"}"\nscp_port = {free_port()}\n[recording]\nfolder = "{work / "rec"}"\n'
-                   f'[calibration]\nfolder = "{work / "cal"}"\n[twin_scene]\nseed = {args.seed}\n'
-                   f'camera_unplug_every_s = {args.unplug_every}\ncamera_unplug_s = {args.unplug_s}\n')
+    cfg, ep, api_port, _ = daemon_config(work, token=TOKEN, top="twin = true\n", twin_scene=(
+        f"seed = {args.seed}\ncamera_unplug_every_s = {args.unplug_every}\ncamera_unplug_s = {args.unplug_s}"))
     base = f"http://127.0.0.1:{api_port}"
     print(f"soak in {work} (daemon output in daemon.out/daemon.err there); load average {os.getloadavg()[0]:.2f}", flush=True)
     seen = Soak()

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _daemon import free_port, stop  # noqa: E402
+from _daemon import daemon_config, stop  # noqa: E402
 from _report import figure, report  # noqa: E402
 
 from drillnav.schemas.topics import key  # noqa: E402
@@ -43,6 +43,7 @@ from drillnav.service.bus import open_session  # noqa: E402
 
 BAR_FIRST_AXIS_S = 10.0
 BAR_DEVICES_S = 3.0
+TOKEN = "startup-bench-token-16"
 CLI_COMMANDS = ([], ["markers"], ["sim"], ["register"], ["calibrate"], ["serve"], ["listen"], ["replay"])
 
 
@@ -59,13 +60,7 @@ def cpu_s(pid: int) -> float:
 
 def first_axis(folder: Path, numba_cache: Path, *, ct: bool, timeout_s: float) -> dict:
     """One start of the twin daemon: seconds to the first axis, CPU spent by then, and its progress lines, timed."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    api_port, dicom_port = free_port(), free_port()
-    conf = folder / "drillnav.toml"
-    conf.write_text(
-        f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "startup-bench-token-16"\n'
-        f'[dicom]\nwatch_folder = "{folder / "in"}"\nscp_port = {dicom_port}\n[recording]\nfolder = "{folder / "rec"}"\n'
-        f'[calibration]\nfolder = "{folder / "cal"}"\n' + ("[twin_scene]\nct_voxel_mm = 2.0\n" if ct else ""))
+    conf, ep, _, _ = daemon_config(folder, token=TOKEN, top="twin = true\n", **({"twin_scene": "ct_voxel_mm = 2.0"} if ct else {}))
     got = threading.Event()
     lines: list[tuple[float, str]] = []
     env = {**os.environ, "NUMBA_CACHE_DIR": str(numba_cache), "PYTHONUNBUFFERED": "1"}
@@ -122,14 +117,9 @@ def devices_start(folder: Path, files: dict, *, timeout_s: float) -> dict:
     """One start on the real drivers; the shots go by C-STORE as soon as the SCP accepts. Seconds from the start."""
     from drillnav.drivers.dicom_scp import send_files
 
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    api_port, dicom_port = free_port(), free_port()
-    conf = folder / "drillnav.toml"
-    conf.write_text(
-        f'markers_file = "{files["markers"]}"\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "startup-bench-token-16"\n'
-        f'[camera]\ndevice = "{files["video"]}"\ncalibration = "{files["camera"]}"\ndrill_calibration = "{files["drill"]}"\n'
-        f'[dicom]\nwatch_folder = "{folder / "in"}"\nscp_port = {dicom_port}\n[recording]\nfolder = "{folder / "rec"}"\n'
-        f'[calibration]\nfolder = "{folder / "cal"}"\n')
+    conf, ep, _, dicom_port = daemon_config(
+        folder, token=TOKEN, top=f'markers_file = "{files["markers"]}"\n',
+        camera=f'device = "{files["video"]}"\ncalibration = "{files["camera"]}"\ndrill_calibration = "{files["drill"]}"')
     first: dict[str, float] = {}
     lines: list[tuple[float, str]] = []
 
