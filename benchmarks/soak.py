@@ -46,6 +46,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 BAR_GAP_OUTSIDE_UNPLUG_S = 0.5
 BAR_GAP_AFTER_GARBAGE_S = 0.2
 BAR_RSS_GROWTH_PCT = 10.0
+RSS_EVERY_S = 10.0
 GARBAGE_WINDOW_S = 1.0  # a garbage burst's gap is the longest one that overlaps this long after it
 
 # Every input key the node decodes (service/node.py subscribes to these two), each with bytes that are not its message.
@@ -60,6 +61,18 @@ def rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def rss_growth_pct(samples_mb: list[float]) -> float:
+    """Growth of the median of the last quarter of the samples over the median of the first quarter, in %.
+
+    The daemon's RSS swings by ~±15 % within a minute (frames in flight, the allocator returning memory), so one
+    sample at each end would judge the swing, not a leak; quarter medians follow a trend and ignore the swing.
+    """
+    if len(samples_mb) < 2:
+        return float("nan")
+    q = max(1, len(samples_mb) // 4)
+    return 100 * (float(np.median(samples_mb[-q:])) / float(np.median(samples_mb[:q])) - 1)
 
 
 def gaps_s(arrivals: list[float]) -> list[tuple[float, float]]:
@@ -179,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"soaking {args.minutes:g} min", flush=True)
             rss_start = rss_mb(proc.pid)
             rss_each_minute: list[float] = []
+            rss_samples = [rss_start]  # every RSS_EVERY_S, for the growth figure
+            marks: list[tuple[float, str]] = []  # (monotonic, what the soak did): to place the longest gap
             st0 = client.get("/status").json()
             t0 = time.monotonic()
             end = t0 + args.minutes * 60
@@ -187,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
             next_shot, next_garbage, installed = t0 + args.shot_every, t0 + args.garbage_every, []
             installer = threading.Thread(target=lambda: installed.append(install_camera_calibration(base, args.seed)), daemon=True)
             shots = garbage_sent = 0
-            next_progress = t0 + 60
+            next_progress, next_rss = t0 + 60, t0 + RSS_EVERY_S
             while time.monotonic() < end:
                 if proc.poll() is not None:
                     raise SystemExit(f"the daemon exited (rc {proc.returncode}) {time.monotonic() - t0:.0f} s into the soak")
@@ -195,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
                 if now >= next_shot:
                     view = views[shots % len(views)]
                     try:
+                        marks.append((now, f"shot {view}"))
                         client.post("/carm/shots", json={"view": view}, headers=AUTH).raise_for_status()
                         shots += 1
                     except httpx.HTTPError as exc:
@@ -202,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                     next_shot += args.shot_every
                 if now >= next_garbage:
                     garbage_at.append(time.monotonic())
+                    marks.append((garbage_at[-1], "garbage on every input key"))
                     for topic, payloads in GARBAGE.items():
                         for p in payloads:
                             s.put(key("drillnav", topic), p)
@@ -209,6 +226,10 @@ def main(argv: list[str] | None = None) -> int:
                     next_garbage += args.garbage_every
                 if installer.ident is None and now >= t0 + (end - t0) / 2:
                     installer.start()  # in a thread: the shots and garbage keep their cadence while the job computes
+                    marks.append((now, "calibration job submitted"))
+                if now >= next_rss:
+                    rss_samples.append(rss_mb(proc.pid))
+                    next_rss += RSS_EVERY_S
                 if now >= next_progress:
                     with seen.lock:
                         n_axes = len(seen.axes)
@@ -221,8 +242,9 @@ def main(argv: list[str] | None = None) -> int:
             st = client.get("/status").json()
             health = client.get("/health")
             rss_end = rss_mb(proc.pid)
+            rss_samples.append(rss_end)
             installer.join(timeout=1)
-        result = summarise(args, seen, t0=t0, first_axis_s=first_axis_s, warmup_s=warmup_s, rss_each_minute=rss_each_minute, st0=st0, st=st, health=health, rss=(rss_start, rss_end),
+        result = summarise(args, seen, t0=t0, first_axis_s=first_axis_s, warmup_s=warmup_s, rss_each_minute=rss_each_minute, st0=st0, st=st, health=health, rss=(rss_start, rss_end), rss_samples=rss_samples, marks=marks,
                            garbage_at=garbage_at, shots=shots, garbage_sent=garbage_sent, installed=installed, failures=failures)
         for k, v in result.items():
             print(f"  {k:34s} {v}")
@@ -235,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, warmup_s: float, rss_each_minute: list[float], st0: dict, st: dict, health: httpx.Response, rss: tuple[float, float],
+              rss_samples: list[float], marks: list[tuple[float, str]],
               garbage_at: list[float], shots: int, garbage_sent: int, installed: list[str], failures: list[str]) -> dict:
     with seen.lock:
         axes = [a for a in seen.axes if a[0] >= t0]
@@ -253,7 +276,9 @@ def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, warmup_s: flo
     each_garbage = garbage_gaps_s(gaps, garbage_at, windows)
     garbage_gaps = [g for g in each_garbage if g is not None]
     rss_start, rss_end = rss
-    growth = 100 * (rss_end / rss_start - 1)
+    growth = rss_growth_pct(rss_samples)
+    near = [f"{what} {outside_at - t:.1f} s before" for t, what in marks if 0 <= outside_at - t < 5.0]
+    near += [f"camera back {outside_at - u['back']:.1f} s before" for u in unplugs if u["back"] is not None and 0 <= outside_at - u["back"] < 5.0]
     bars = {
         "gap_outside_unplug_le_0.5s": outside_s <= BAR_GAP_OUTSIDE_UNPLUG_S,
         "gap_after_garbage_le_200ms": bool(garbage_gaps) and max(garbage_gaps) <= BAR_GAP_AFTER_GARBAGE_S,
@@ -269,13 +294,14 @@ def summarise(args, seen: Soak, *, t0: float, first_axis_s: float, warmup_s: flo
         "axes_published": st["axes_published"] - st0["axes_published"], "axes_received": len(axes),
         "longest_gap_outside_unplugs_ms": round(outside_s * 1000, 1),
         "longest_gap_outside_at_s": None if outside_at != outside_at else round(outside_at - t0, 1),
+        "longest_gap_outside_after": near,
         "gaps_over_200ms_outside_unplugs": sum(1 for g in gaps if g[1] - g[0] > 0.2 and not any(overlaps(g, lo, hi) for lo, hi in windows)),
         "garbage_bursts": len(garbage_at), "garbage_sent": garbage_sent,
         "longest_gap_after_garbage_ms": round(max(garbage_gaps) * 1000, 1) if garbage_gaps else None,
         "gap_after_each_garbage_ms": [None if g is None else round(g * 1000) for g in each_garbage],  # None: during an unplug
         "unplugs": len(unplugs), "unplug_windows_s": [round(hi - lo, 2) if hi != float("inf") else "never back" for lo, hi in windows],
         "resume_after_replug_s": resumes,
-        "rss_mb_start": round(rss_start, 1), "rss_mb_end": round(rss_end, 1), "rss_growth_pct": round(growth, 1),
+        "rss_mb_start": round(rss_start, 1), "rss_mb_end": round(rss_end, 1), "rss_growth_pct": round(growth, 1),  # quarter medians: see rss_growth_pct()
         "rss_mb_each_minute": rss_each_minute,
         "shots_sent": shots, "shots": {k: st["shots"][k] - st0["shots"][k] for k in st["shots"]},
         "registrations": st["registrations"] - st0["registrations"], "registration_failures": st["registration_failures"],

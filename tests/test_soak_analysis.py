@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from soak import GARBAGE_WINDOW_S, garbage_gaps_s, gaps_s, longest_outside  # noqa: E402
+from soak import GARBAGE_WINDOW_S, garbage_gaps_s, gaps_s, longest_outside, rss_growth_pct  # noqa: E402
 
 
 def stream(*, period_s: float, until_s: float, holes: list[tuple[float, float]]) -> list[float]:
@@ -34,3 +34,10 @@ def test_a_garbage_burst_is_judged_on_the_second_after_it_unless_it_met_an_unplu
     assert each[2] is None                            # during the unplug: no axis to judge
     late = garbage_gaps_s(gaps, garbage_at=[20.1 - GARBAGE_WINDOW_S - 0.2], windows=[])
     assert late[0] < 0.1  # a gap that starts after the burst's window is not the burst's
+
+
+def test_rss_growth_follows_a_trend_not_a_swing():
+    swing = [500.0, 620.0, 480.0, 640.0] * 10  # +-15 % within a minute, no trend
+    assert abs(rss_growth_pct(swing)) < 5.0
+    leak = [s + 3.0 * k for k, s in enumerate(swing)]  # 3 MB per sample on top of the swing
+    assert rss_growth_pct(leak) > 15.0
