@@ -226,6 +226,8 @@ def test_the_readme_client_receives_over_mutual_tls(site):
 
 # --- settings: what is refused before anything opens ---------------------------------------------------------------
 
+UNBOUND = 7447  # endpoints that are only validated here, never opened: zenoh's usual port, as an operator writes it
+
 
 def test_listening_beyond_loopback_unsecured_is_refused_unless_insecure(site):
     wide = f"tcp/0.0.0.0:{free_port()}"
@@ -234,18 +236,18 @@ def test_listening_beyond_loopback_unsecured_is_refused_unless_insecure(site):
     with pytest.raises(SettingsError, match="insecure = true"):
         open_session(listen=[wide])  # the same refusal for a session built from fields
     with pytest.raises(SettingsError, match="multicast_scouting"):
-        load_settings(zenoh={"listen": ["tcp/127.0.0.1:7447"], "multicast_scouting": True})
-    with pytest.raises(SettingsError, match="connect 'tcp/10.1.2.3:7447'.*without TLS"):
-        load_settings(zenoh={"listen": [], "connect": ["tcp/10.1.2.3:7447"]})
+        load_settings(zenoh={"listen": [f"tcp/127.0.0.1:{UNBOUND}"], "multicast_scouting": True})
+    with pytest.raises(SettingsError, match=f"connect 'tcp/10.1.2.3:{UNBOUND}'.*without TLS"):
+        load_settings(zenoh={"listen": [], "connect": [f"tcp/10.1.2.3:{UNBOUND}"]})
     # TLS alone is not enough for a listener: it must know who connects and limit what they may do
-    tls_only = {"listen": ["tls/0.0.0.0:7447"], "tls": {"ca": str(site / "ca.pem"), "certificate": str(site / "drillnav-daemon.pem"), "private_key": str(site / "drillnav-daemon.key"), "mutual": False}}
+    tls_only = {"listen": [f"tls/0.0.0.0:{UNBOUND}"], "tls": {"ca": str(site / "ca.pem"), "certificate": str(site / "drillnav-daemon.pem"), "private_key": str(site / "drillnav-daemon.key"), "mutual": False}}
     with pytest.raises(SettingsError, match="without authentication.*without access control"):
         load_settings(zenoh=tls_only)
     assert load_settings(zenoh={"listen": [wide], "insecure": True}).zenoh.insecure
     secured = {**tls_only, "tls": {**tls_only["tls"], "mutual": True}, "access_control": {"enabled": True}}
     assert load_settings(zenoh=secured).zenoh.access_control.enabled
     # loopback needs nothing
-    assert load_settings(zenoh={"listen": ["tcp/127.0.0.1:7447", "tcp/[::1]:7448", "tcp/localhost:7449"]})
+    assert load_settings(zenoh={"listen": [f"tcp/127.0.0.1:{UNBOUND}", f"tcp/[::1]:{UNBOUND + 1}", f"tcp/localhost:{UNBOUND + 2}"]})
 
 
 def test_settings_name_missing_files_and_loose_keys(site, tmp_path, monkeypatch):
@@ -261,11 +263,11 @@ def test_settings_name_missing_files_and_loose_keys(site, tmp_path, monkeypatch)
     with pytest.raises(SettingsError, match="zenoh.auth.user and zenoh.auth.password go together"):
         load_settings(zenoh={"auth": {"user": "display-1"}})
     with pytest.raises(SettingsError, match=r"zenoh.tls.certificate and zenoh.tls.private_key are needed to listen on tls/"):
-        load_settings(zenoh={"listen": ["tls/127.0.0.1:7447"], "tls": {"ca": str(site / "ca.pem")}})
+        load_settings(zenoh={"listen": [f"tls/127.0.0.1:{UNBOUND}"], "tls": {"ca": str(site / "ca.pem")}})
     with pytest.raises(SettingsError, match="zenoh.access_control.enabled needs a way to know who a peer is"):
         load_settings(zenoh={"access_control": {"enabled": True}})
     with pytest.raises(SettingsError, match="is not a zenoh endpoint"):
-        load_settings(zenoh={"listen": ["127.0.0.1:7447"]})
+        load_settings(zenoh={"listen": [f"127.0.0.1:{UNBOUND}"]})
     # environment variables reach the nested keys, and are checked the same way
     monkeypatch.setenv("DRILLNAV_ZENOH__TLS__CA", str(tmp_path / "env-ca.pem"))
     with pytest.raises(SettingsError, match="env-ca.pem does not exist"):
