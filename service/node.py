@@ -43,9 +43,10 @@ from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import MarkerPose, register_markers
 from drillnav.registration.markers import MarkerSet
 from drillnav.registration.overlay import annotate, draw_axis, draw_detections, to_display
-from drillnav.registration.pipeline import LiveCalibration, ReliableLimits, track_frame
+from drillnav.registration.pipeline import LiveCalibration, ReliableLimits
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
+from drillnav.service.joint_worker import JointSolveWorker
 
 __all__ = ["RegistrationNode", "NodeCounters"]
 
@@ -116,7 +117,7 @@ class RegistrationNode:
         self.last_error: str | None = None
         self._registration_state = "waiting for fluoroscopy"
         self._sequence = 0
-        self._refinement = None  # the last joint solve, carried between frames (registration/pipeline.py)
+        self.joint = JointSolveWorker(marker_set=marker_set)  # the periodic joint solve, off the frame path (service/joint_worker.py)
         self._frame: deque = deque(maxlen=1)
         self._shots_in: deque = deque()
         self._wake = threading.Condition()
@@ -141,6 +142,7 @@ class RegistrationNode:
             self._pub_markers = stack.enter_context(s.declare_publisher(key(p, "fluoro_markers"), encoding=json_enc))
             stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
             stack.enter_context(s.declare_subscriber(key(p, "fluoro_shot"), self._on_shot))
+            stack.enter_context(self.joint)  # closed after the frame thread is joined (the stack unwinds in reverse)
             self._stop.clear()
             stack.callback(self._join_workers)
             self._started_ns = self._last_frame_done_ns = time.monotonic_ns()
@@ -367,9 +369,8 @@ class RegistrationNode:
         calibration, poses = self.calibration, self.poses  # one read each: a swap mid-frame does not mix calibrations
         if calibration is None or not poses:
             return
-        fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=self.reliable_limits,
-                         refinement=self._refinement, now_ns=stamp)  # capture time: a replay re-solves on the same frames
-        self._refinement = fa.refinement  # the frame thread's alone
+        # Scheduled on capture time: a replay re-solves and adopts on the same frames.
+        fa = self.joint.track(image, calibration=calibration, poses=poses, stamp_ns=stamp, limits=self.reliable_limits)
         reg, pe = fa.registration, fa.predicted_error
         now = time.time_ns()
         error = msg.PredictedError(position_mm=float(pe.position_mm), angle_deg=float(pe.angle_deg),
