@@ -70,7 +70,7 @@ class BusDaemon:
             n += 1
             stamp = time.time_ns()
             if self.camera_on.is_set() and n % 3 == 0:
-                self.session.put(key(PREFIX, "camera_image"), msg.compressed_image(np.full((48, 64, 3), 128, np.uint8), stamp_ns=stamp, frame_id="drill_camera"))
+                self.session.put(key(PREFIX, "camera_image"), msg.compressed_image(CAMERA_PICTURE, stamp_ns=stamp, frame_id="drill_camera"))
             if n % 30 == 0:
                 self.session.put(key(PREFIX, "status"), msg.encode_json({"stamp_ns": stamp, "state": "registered", "registration_id": 1}))
             if not self.axes_on.is_set():
@@ -95,6 +95,9 @@ class BusDaemon:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
+
+
+CAMERA_PICTURE = np.repeat(np.repeat((np.arange(64, dtype=np.uint8) * 4)[None, :, None], 48, axis=0), 3, axis=2)  # a ramp: a preview to read back
 
 
 class State:
@@ -202,6 +205,15 @@ def test_always_on_numbers(page):
     ages = page.locator(".view figcaption .age").all_inner_texts()
     assert len(ages) == 3 and all(a.endswith(" s ago") for a in ages), ages
     assert page.locator(".alert").count() == 0, page.locator("#alerts").inner_text()
+
+
+def test_camera_preview_is_decoded_off_the_main_thread_and_drawn(page):
+    page.wait_for_function("window.drillnav.camerasShown >= 2", timeout=5000)
+    spread = page.evaluate("() => { const c = document.getElementById('camera-canvas'), d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+                           " let lo = 255, hi = 0; for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); hi = Math.max(hi, d[i]); }"
+                           " return {w: c.width, h: c.height, lo, hi}; }")
+    assert spread["w"] == 320 and spread["h"] > 100, spread  # decoded straight to the preview's width
+    assert spread["hi"] - spread["lo"] > 50, spread  # a picture, not a blank canvas
 
 
 def test_stale_alert_within_a_second_of_the_camera_stopping(served, page):
