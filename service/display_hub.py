@@ -119,6 +119,7 @@ class DisplayHub:
         self._events: deque[str] = deque(maxlen=20)
         self._event_n = 0
         self._last_camera_ns = 0
+        self._preview_stamps: deque[int] = deque(maxlen=8)  # capture stamps of the previews sent: their tags follow them
         self._ct_display: CtVolumeForDisplay | None = None
         self._subs: list[Any] = []
         self.decode_errors = 0
@@ -129,7 +130,8 @@ class DisplayHub:
         k = lambda name, view=None: key(self.prefix, name, view)  # noqa: E731
         handlers = [(k("axis_carm"), self._on_axis), (k("axis_ct"), self._on_axis_ct), (k("fluoro_shot"), self._on_shot),
                     (k("fluoro_image", "*"), self._on_view_image), (k("camera_image"), self._on_camera), (k("status"), self._on_status),
-                    (k("events"), self._on_event), (k("fluoro_markers"), self._on_markers)]
+                    (k("events"), self._on_event), (k("fluoro_markers"), self._on_markers),
+                    (k("camera_markers"), self._on_camera_tags)]
         for key_expr, handler in handlers:
             self._subs.append(self.session.declare_subscriber(key_expr, self._guarded(handler)))
         return self
@@ -231,7 +233,18 @@ class DisplayHub:
         img = CompressedImage()
         img.ParseFromString(sample.payload.to_bytes())
         stamp = img.timestamp.seconds * 1_000_000_000 + img.timestamp.nanos
+        with self._lock:
+            self._preview_stamps.append(stamp)
         self._send("camera", json.dumps({"type": "camera", "stamp_ns": stamp, "format": img.format, "data_base64": base64.b64encode(img.data).decode()}))
+
+    def _on_camera_tags(self, sample: zenoh.Sample) -> None:
+        # Only the tags of a frame sent as a preview: the browser outlines them on that picture, a few per second.
+        text = self._raw_json(sample, "stamp_ns", "image_size", "markers")
+        stamp = json.loads(text)["stamp_ns"]
+        with self._lock:
+            if stamp not in self._preview_stamps:
+                return
+        self._send("tags", f'{{"type":"tags","data":{text}}}')
 
     def _on_shot(self, sample: zenoh.Sample) -> None:
         doc = json.loads(sample.payload.to_bytes())

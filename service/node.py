@@ -140,6 +140,7 @@ class RegistrationNode:
             self._pub_status = stack.enter_context(s.declare_publisher(key(p, "status"), encoding=json_enc))
             self._pub_events = stack.enter_context(s.declare_publisher(key(p, "events"), encoding=json_enc))
             self._pub_markers = stack.enter_context(s.declare_publisher(key(p, "fluoro_markers"), encoding=json_enc))
+            self._pub_video = stack.enter_context(s.declare_publisher(key(p, "camera_markers"), encoding=json_enc))
             stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
             stack.enter_context(s.declare_subscriber(key(p, "fluoro_shot"), self._on_shot))
             stack.enter_context(self.joint)  # closed after the frame thread is joined (the stack unwinds in reverse)
@@ -397,6 +398,11 @@ class RegistrationNode:
         with self._wake:
             self._overlay_axis = (fa.axis_full_carm, pe.angle_deg, now)
             self._wake.notify_all()
+        # After the axis (never in its latency): the tags this frame showed, for the display's camera preview and tools.
+        self._pub_video.put(msg.VideoMarkers(
+            stamp_ns=stamp, image_size=fa.video.image_size, ignored_ids=fa.video.ignored_ids,
+            markers=tuple(msg.VideoTag(id=int(m.marker_id), corners_px=tuple(map(tuple, m.corners_px.tolist()))) for m in fa.video.markers),
+        ).to_bytes())
 
     def _overlay_loop(self) -> None:
         """Overlays of the newest axis on each held shot, at most every ``overlay_period_s``, off the frame path."""

@@ -71,6 +71,7 @@ class BusDaemon:
             stamp = time.time_ns()
             if self.camera_on.is_set() and n % 3 == 0:
                 self.session.put(key(PREFIX, "camera_image"), msg.compressed_image(CAMERA_PICTURE, stamp_ns=stamp, frame_id="drill_camera"))
+                self.session.put(key(PREFIX, "camera_markers"), msg.VideoMarkers(stamp_ns=stamp, image_size=(64, 48), markers=(CAMERA_TAG,)).to_bytes())
             if n % 30 == 0:
                 self.session.put(key(PREFIX, "status"), msg.encode_json({"stamp_ns": stamp, "state": "registered", "registration_id": 1}))
             if not self.axes_on.is_set():
@@ -97,6 +98,7 @@ class BusDaemon:
         self._thread.join(timeout=5)
 
 
+CAMERA_TAG = msg.VideoTag(id=7, corners_px=((10.0, 10.0), (30.0, 10.0), (30.0, 30.0), (10.0, 30.0)))  # px of the 64 x 48 picture
 CAMERA_PICTURE = np.repeat(np.repeat((np.arange(64, dtype=np.uint8) * 4)[None, :, None], 48, axis=0), 3, axis=2)  # a ramp: a preview to read back
 
 
@@ -207,13 +209,24 @@ def test_always_on_numbers(page):
     assert page.locator(".alert").count() == 0, page.locator("#alerts").inner_text()
 
 
-def test_camera_preview_is_decoded_off_the_main_thread_and_drawn(page):
+def test_camera_preview_is_decoded_off_the_main_thread_and_drawn_with_its_tags(page):
     page.wait_for_function("window.drillnav.camerasShown >= 2", timeout=5000)
     spread = page.evaluate("() => { const c = document.getElementById('camera-canvas'), d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
                            " let lo = 255, hi = 0; for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); hi = Math.max(hi, d[i]); }"
                            " return {w: c.width, h: c.height, lo, hi}; }")
-    assert spread["w"] == 320 and spread["h"] > 100, spread  # decoded straight to the preview's width
+    assert spread["w"] == 320 and spread["h"] == 240, spread  # decoded straight to the preview's width
     assert spread["hi"] - spread["lo"] > 50, spread  # a picture, not a blank canvas
+    # The tag of that very frame (camera/markers of the same stamp), outlined where its corners are: x5 on the 320 px preview.
+    # Read in one evaluation with the record of what was drawn, so a newer preview cannot come between.
+    got = page.wait_for_function("(() => { const t = window.drillnav.tagsDrawn; if (!t) return null;"
+                                 " const x = document.getElementById('camera-canvas').getContext('2d'), px = (c, r) => Array.from(x.getImageData(c, r, 1, 1).data);"
+                                 " return {t, edge: px(102, 52), left: px(52, 120), away: px(250, 200)}; })()", timeout=5000).json_value()
+    assert got["t"]["ids"] == [7] and got["t"]["scale"] == 5, got
+    for name in ("edge", "left"):  # bluish green #009E73 on the grey ramp
+        r, g, b, _ = got[name]
+        assert g > r + 80 and b > r + 50, got
+    r, g, b, _ = got["away"]
+    assert abs(r - g) < 12 and abs(g - b) < 12, got  # the picture itself, untouched away from the tag
 
 
 def test_stale_alert_within_a_second_of_the_camera_stopping(served, page):

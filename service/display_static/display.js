@@ -16,7 +16,7 @@ const S = window.drillnav = {
   views: {},                   // name -> {stamp_ns, P (3x4), rows, columns, image, canvas, overlay, drawn}
   newAxis: false, newAxisCt: false, lastDrawnStamp: 0,
   latenciesMs: [], hubToDrawnMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
-  camerasShown: 0, panelAt: -Infinity,
+  camerasShown: 0, panelAt: -Infinity, preview: null, tags: null, tagsDrawn: null,
 };
 
 // ---- small linear algebra ------------------------------------------------------------------------------
@@ -87,6 +87,7 @@ function connect() {
       case "status": S.status = m.data; S.serverOffsetMs = Date.now() - m.server_ns / 1e6; break;
       case "markers": S.markers = m.data; break;
       case "camera": showCamera(m, now); break;
+      case "tags": S.tags = m.data; if (S.preview && S.preview.stamp === m.data.stamp_ns) drawPreview(); break;
       case "view": addView(m); break;
       case "event": addEvent(m.data); break;
     }
@@ -108,13 +109,34 @@ function showCamera(m, now) {
   const bin = atob(m.data_base64), bytes = new Uint8Array(bin.length);
   for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
   const blob = new Blob([bytes], { type: m.format === "png" ? "image/png" : "image/jpeg" });
+  const stamp = m.stamp_ns;
   createImageBitmap(blob, { resizeWidth: CAMERA_WIDTH_PX, resizeQuality: "medium" }).then((bmp) => {
-    const c = document.getElementById("camera-canvas");
-    if (c.width !== bmp.width || c.height !== bmp.height) { c.width = bmp.width; c.height = bmp.height; }
-    c.getContext("2d").drawImage(bmp, 0, 0);
-    bmp.close();
+    if (S.preview) S.preview.bmp.close();
+    S.preview = { bmp, stamp };
+    drawPreview();
     S.camerasShown++;
   }).catch(() => {}).finally(() => { cameraDecoding = false; });  // an undecodable preview: the next one tries again
+}
+
+// The preview with the tags the node found in that very frame (camera/markers of the same capture stamp, which
+// comes a few ms after the frame): outlined and numbered. Tags of another frame are never drawn on it.
+function drawPreview() {
+  const c = document.getElementById("camera-canvas"), { bmp, stamp } = S.preview;
+  if (c.width !== bmp.width || c.height !== bmp.height) { c.width = bmp.width; c.height = bmp.height; }
+  const ctx = c.getContext("2d");
+  ctx.drawImage(bmp, 0, 0);
+  const t = S.tags;
+  if (!t || t.stamp_ns !== stamp) { S.tagsDrawn = null; return; }
+  const k = c.width / t.image_size[0];
+  ctx.lineWidth = 2; ctx.strokeStyle = COLOURS.ok; ctx.fillStyle = COLOURS.ok;
+  ctx.font = "bold 16px sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle";
+  for (const tag of t.markers) {
+    const q = tag.corners_px.map(([x, y]) => [(x + 0.5) * k - 0.5, (y + 0.5) * k - 0.5]);
+    polyline(ctx, q); ctx.closePath(); ctx.stroke();
+    const cx = q.reduce((s, p) => s + p[0], 0) / 4, cy = q.reduce((s, p) => s + p[1], 0) / 4;
+    ctx.fillText(String(tag.id), cx, cy);
+  }
+  S.tagsDrawn = { stamp_ns: stamp, ids: t.markers.map((tag) => tag.id), scale: k };
 }
 
 function addEvent(e) {
