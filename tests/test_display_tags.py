@@ -5,7 +5,6 @@ import asyncio
 import json
 import threading
 import time
-from pathlib import Path
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.schemas import messages as msg
@@ -13,10 +12,9 @@ from drillnav.schemas.topics import key
 from drillnav.service.bus import open_session
 from drillnav.service.display_hub import DisplayHub
 from drillnav.service.node import RegistrationNode
-from drillnav.service.replay import iter_recording, replay
+from drillnav.service.replay import iter_recording
 from conftest import free_endpoint
-
-RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
+from twin_replay import RECORDING, play_at_camera_rate
 
 
 def test_each_frames_tags_are_published_and_the_hub_sends_those_of_its_previews():
@@ -49,12 +47,11 @@ def test_each_frames_tags_are_published_and_the_hub_sends_those_of_its_previews(
             reader.start()
             try:
                 node.joint.wait_ready()
-                time.sleep(0.5)
-                replay(RECORDING, player, rate=0.5, state_settle_s=1.0)  # half speed: ~1.3 s of frames, previews at 5 Hz
+                n = play_at_camera_rate(player, node, fps=15.0)  # ~1.3 s of frames: previews at 5 Hz
                 deadline = time.monotonic() + 5
-                while node.counters.frames_received > node.counters.frames_processed + node.counters.frames_dropped and time.monotonic() < deadline:
+                while len(tags) < n - node.counters.frames_dropped and time.monotonic() < deadline:
                     time.sleep(0.05)
-                time.sleep(0.5)
+                time.sleep(0.3)
             finally:
                 stop.set()
                 reader.join(5)
