@@ -8,6 +8,7 @@ the host, and /docs and /redoc render without internet.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from typing import Any
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
+import zenoh
 
 from conftest import free_endpoint, free_port
 from display_browser import axis_pixels_js, fit_line_px, launch, line_distance_px, require_chromium
@@ -51,13 +53,21 @@ class BusDaemon:
 
     def start(self) -> None:
         rng = np.random.default_rng(3)
+        # Sent once: a put before the hub's subscription has reached this session is lost, so wait until each key matches.
+        keys = [key(PREFIX, "fluoro_shot"), key(PREFIX, "fluoro_markers")] + [key(PREFIX, "fluoro_image", name) for name in VIEWS]
+        pubs = {k: self.session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in keys}
+        deadline = time.monotonic() + 10
+        while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
         for name, view in VIEWS.items():
             img = (1.0 + 0.3 * rng.standard_normal((view.rows, view.columns))).astype(np.float32)
             stamp = time.time_ns()
-            self.session.put(key(PREFIX, "fluoro_shot"), msg.FluoroShot.build(img, view, stamp_ns=stamp, view_name=name).to_bytes())
-            self.session.put(key(PREFIX, "fluoro_image", name), msg.compressed_image(to_display(img), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
-        self.session.put(key(PREFIX, "fluoro_markers"), msg.encode_json({"stamp_ns": time.time_ns(), "registration_id": 1, "views": list(VIEWS),
+            pubs[key(PREFIX, "fluoro_shot")].put(msg.FluoroShot.build(img, view, stamp_ns=stamp, view_name=name).to_bytes())
+            pubs[key(PREFIX, "fluoro_image", name)].put(msg.compressed_image(to_display(img), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+        pubs[key(PREFIX, "fluoro_markers")].put(msg.encode_json({"stamp_ns": time.time_ns(), "registration_id": 1, "views": list(VIEWS),
                                                                            "markers": [{"id": i, "converged": True} for i in (1, 22, 29, 36)]}))
+        for p in pubs.values():
+            p.undeclare()
         self.axes_on.set()
         self.camera_on.set()
         self._thread.start()
@@ -123,11 +133,9 @@ def _ct() -> Volume:
     return Volume(data=data, patient_from_voxel=np.diag([2.0, 2.0, 2.0, 1.0]) + np.array([[0, 0, 0, -50.0], [0, 0, 0, -50.0], [0, 0, 0, -50.0], [0, 0, 0, 0]]))
 
 
-@pytest.fixture(scope="module")
-def served():
-    exe = require_chromium()
-    from playwright.sync_api import sync_playwright
-
+@contextlib.contextmanager
+def display_server():
+    """The hub on a real zenoh bus fed by a :class:`BusDaemon`, and the REST app on uvicorn: yields (base URL, bus, hub)."""
     ep = free_endpoint()
     port = free_port()
     with open_session(listen=[ep]) as hub_session, open_session(connect=[ep]) as bus_session:
@@ -142,16 +150,24 @@ def served():
                     time.sleep(0.05)
                 time.sleep(0.3)  # the peer link between the two sessions
                 bus.start()
-                with sync_playwright() as pw:
-                    browser = launch(pw, exe)
-                    try:
-                        yield {"base": f"http://127.0.0.1:{port}", "bus": bus, "browser": browser, "hub": hub}
-                    finally:
-                        browser.close()
+                yield f"http://127.0.0.1:{port}", bus, hub
             finally:
                 bus.stop()
                 server.should_exit = True
                 t.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def served():
+    exe = require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with display_server() as (base, bus, hub), sync_playwright() as pw:
+        browser = launch(pw, exe)
+        try:
+            yield {"base": base, "bus": bus, "browser": browser, "hub": hub}
+        finally:
+            browser.close()
 
 
 @pytest.fixture(scope="module")
@@ -167,6 +183,31 @@ def page(served):
     page.close()
 
 
+def assert_axis_on_projection(got: dict[str, Any], bus: BusDaemon) -> None:
+    """``got`` (``axis_pixels_js``, per view): the page's record and the axis pixels lie within 2 px of P applied to the published axis."""
+    assert set(got) == set(VIEWS)
+    for name, g in got.items():
+        axis = bus.axes[min(bus.axes, key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))]  # JS numbers hold ns stamps to ~0.3 us
+        view = VIEWS[name]
+        p = np.asarray(axis["point_mm"])
+        a, b = view.project(np.vstack([p, p + 100 * np.asarray(axis["direction"])]))
+        # The page's own record: both ends on the image border, on the projected line.
+        seg = np.asarray(g["drawn"]["segment"])
+        assert line_distance_px(seg, a, b).max() < 2.0, (name, seg, a, b)
+        for x, y in seg:  # each end on the image's border: the line runs across the whole image
+            assert min(abs(x + 0.5), abs(x - (view.columns - 0.5)), abs(y + 0.5), abs(y - (view.rows - 0.5))) < 1e-6, seg
+        # The pixels: a line across the whole image (long), within 2 px of the projection along all its length.
+        px = np.asarray(g["pixels"], dtype=np.float64)
+        assert len(px) > 1000, f"{name}: only {len(px)} axis pixels drawn"
+        c, u = fit_line_px(px)
+        ends = c + np.outer([-600, 600], u)
+        inside = np.array([e for e in np.linspace(ends[0], ends[1], 50) if 0 <= e[0] < view.columns and 0 <= e[1] < view.rows])
+        assert line_distance_px(inside, a, b).max() < 2.0, name
+        span = np.ptp(px @ u)
+        assert span > 0.8 * np.linalg.norm(seg[1] - seg[0]), f"{name}: the drawn axis spans {span:.0f} px of {np.linalg.norm(seg[1] - seg[0]):.0f}"
+        assert not g["drawn"]["stale"]
+
+
 def test_drawn_axis_lies_on_the_projection_of_the_published_axis(served, page):
     """Read back from the canvas: the axis-coloured pixels of each view fit a line within 2 px of P applied to the published axis."""
     bus = served["bus"]
@@ -176,27 +217,7 @@ def test_drawn_axis_lies_on_the_projection_of_the_published_axis(served, page):
         got = page.evaluate(axis_pixels_js)
         if any(g["drawn"]["stale"] for g in got.values()):
             continue
-        assert set(got) == set(VIEWS)
-        for name, g in got.items():
-            axis = bus.axes[min(bus.axes, key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))]  # JS numbers hold ns stamps to ~0.3 us
-            view = VIEWS[name]
-            p = np.asarray(axis["point_mm"])
-            a, b = view.project(np.vstack([p, p + 100 * np.asarray(axis["direction"])]))
-            # The page's own record: both ends on the image border, on the projected line.
-            seg = np.asarray(g["drawn"]["segment"])
-            assert line_distance_px(seg, a, b).max() < 2.0, (name, seg, a, b)
-            for x, y in seg:  # each end on the image's border: the line runs across the whole image
-                assert min(abs(x + 0.5), abs(x - (view.columns - 0.5)), abs(y + 0.5), abs(y - (view.rows - 0.5))) < 1e-6, seg
-            # The pixels: a line across the whole image (long), within 2 px of the projection along all its length.
-            px = np.asarray(g["pixels"], dtype=np.float64)
-            assert len(px) > 1000, f"{name}: only {len(px)} axis pixels drawn"
-            c, u = fit_line_px(px)
-            ends = c + np.outer([-600, 600], u)
-            inside = np.array([e for e in np.linspace(ends[0], ends[1], 50) if 0 <= e[0] < view.columns and 0 <= e[1] < view.rows])
-            assert line_distance_px(inside, a, b).max() < 2.0, name
-            span = np.ptp(px @ u)
-            assert span > 0.8 * np.linalg.norm(seg[1] - seg[0]), f"{name}: the drawn axis spans {span:.0f} px of {np.linalg.norm(seg[1] - seg[0]):.0f}"
-            assert not g["drawn"]["stale"]
+        assert_axis_on_projection(got, bus)
         time.sleep(0.2)
 
 
