@@ -5,7 +5,9 @@ queue of one), so under overload stale frames are dropped and counted, never
 queued. Each new fluoroscopy shot (``fluoro/shot``) triggers marker detection
 and a new marker registration in a worker thread; every camera frame then goes
 through the live pipeline (:func:`~drillnav.registration.pipeline.track_frame`)
-to the axis in C with its predicted error. With a
+to the axis in C with its predicted error, the periodic joint solve in a worker
+process (:class:`~drillnav.service.joint_worker.JointSolveWorker`); the tags it
+found go out on ``camera/markers`` after the axis. With a
 :class:`~drillnav.service.ct_tracker.CtTracker` (video-CT mode), each marker
 registration also hands the shots to the CT registration, and every frame's
 axis is published in the CT frame too, with conformance to the plan.
