@@ -128,13 +128,15 @@ function drawPreview() {
   const t = S.tags;
   if (!t || t.stamp_ns !== stamp) { S.tagsDrawn = null; return; }
   const k = c.width / t.image_size[0];
-  ctx.lineWidth = 2; ctx.strokeStyle = COLOURS.ok; ctx.fillStyle = COLOURS.ok;
-  ctx.font = "bold 16px sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle";
+  ctx.font = "bold 18px sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle"; ctx.lineJoin = "round";
   for (const tag of t.markers) {
     const q = tag.corners_px.map(([x, y]) => [(x + 0.5) * k - 0.5, (y + 0.5) * k - 0.5]);
-    polyline(ctx, q); ctx.closePath(); ctx.stroke();
-    const cx = q.reduce((s, p) => s + p[0], 0) / 4, cy = q.reduce((s, p) => s + p[1], 0) / 4;
-    ctx.fillText(String(tag.id), cx, cy);
+    ctx.lineWidth = 2; ctx.strokeStyle = COLOURS.ok; polyline(ctx, q); ctx.closePath(); ctx.stroke();
+    // The id beside the tag, white on a black edge: legible over the tag's own pattern and the background alike.
+    const cx = q.reduce((s, p) => s + p[0], 0) / 4, top = Math.min(...q.map((p) => p[1]));
+    const y = top > 14 ? top - 10 : Math.max(...q.map((p) => p[1])) + 10;
+    ctx.lineWidth = 4; ctx.strokeStyle = "#000"; ctx.strokeText(String(tag.id), cx, y);
+    ctx.fillStyle = "#fff"; ctx.fillText(String(tag.id), cx, y);
   }
   S.tagsDrawn = { stamp_ns: stamp, ids: t.markers.map((tag) => tag.id), scale: k };
 }
