@@ -16,7 +16,7 @@ const S = window.drillnav = {
   views: {},                   // name -> {stamp_ns, P (3x4), rows, columns, image, canvas, overlay, drawn}
   newAxis: false, newAxisCt: false, lastDrawnStamp: 0,
   latenciesMs: [], hubToDrawnMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
-  camerasShown: 0, panelAt: -Infinity, preview: null, tags: null, tagsDrawn: null,
+  camerasShown: 0, panelAt: -Infinity, preview: null, tagsDrawn: null,
 };
 
 // ---- small linear algebra ------------------------------------------------------------------------------
@@ -87,7 +87,6 @@ function connect() {
       case "status": S.status = m.data; S.serverOffsetMs = Date.now() - m.server_ns / 1e6; break;
       case "markers": S.markers = m.data; break;
       case "camera": showCamera(m, now); break;
-      case "tags": S.tags = m.data; if (S.preview && S.preview.stamp === m.data.stamp_ns) drawPreview(); break;
       case "view": addView(m); break;
       case "event": addEvent(m.data); break;
     }
@@ -109,23 +108,22 @@ function showCamera(m, now) {
   const bin = atob(m.data_base64), bytes = new Uint8Array(bin.length);
   for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
   const blob = new Blob([bytes], { type: m.format === "png" ? "image/png" : "image/jpeg" });
-  const stamp = m.stamp_ns;
+  const stamp = m.stamp_ns, tags = m.tags;
   createImageBitmap(blob, { resizeWidth: CAMERA_WIDTH_PX, resizeQuality: "medium" }).then((bmp) => {
     if (S.preview) S.preview.bmp.close();
-    S.preview = { bmp, stamp };
+    S.preview = { bmp, stamp, tags };
     drawPreview();
     S.camerasShown++;
   }).catch(() => {}).finally(() => { cameraDecoding = false; });  // an undecodable preview: the next one tries again
 }
 
-// The preview with the tags the node found in that very frame (camera/markers of the same capture stamp, which
-// comes a few ms after the frame): outlined and numbered. Tags of another frame are never drawn on it.
+// The preview with the tags the node found in that very frame (the hub sends them together; null when the node
+// tracks nothing): outlined and numbered. Tags of another frame are never drawn on it.
 function drawPreview() {
-  const c = document.getElementById("camera-canvas"), { bmp, stamp } = S.preview;
+  const c = document.getElementById("camera-canvas"), { bmp, stamp, tags: t } = S.preview;
   if (c.width !== bmp.width || c.height !== bmp.height) { c.width = bmp.width; c.height = bmp.height; }
   const ctx = c.getContext("2d");
   ctx.drawImage(bmp, 0, 0);
-  const t = S.tags;
   if (!t || t.stamp_ns !== stamp) { S.tagsDrawn = null; return; }
   const k = c.width / t.image_size[0];
   ctx.font = "bold 18px sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle"; ctx.lineJoin = "round";
