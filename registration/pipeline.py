@@ -16,6 +16,13 @@ the registration or calibration changed or the last solve is older than
 (mirror settled, normals fixed by the camera) in the Horn + corner PnP path, and
 its covariance (carried with the drill, about a pivot fixed in D) for the
 predicted error. One frame (``drillnav register``) always runs the joint solve.
+
+A live caller that can solve elsewhere (the registration node: a worker
+process) passes ``joint_period_ns=None``: a frame then runs the joint solve only
+when no refinement fits its registration and calibration, and the caller asks
+for the periodic re-solve itself (:func:`refinement_due`) and adopts the result
+(:func:`joint_refinement`) on a later frame, so the ~27 ms solve leaves the frame
+path.
 """
 
 from __future__ import annotations
@@ -34,7 +41,8 @@ from .transforms import apply, invert
 from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
 from .video_markers import VideoDetections, VideoMarkerLocator
 
-__all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "JOINT_PERIOD_NS"]
+__all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
+           "refinement_due", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
@@ -87,6 +95,27 @@ def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tup
                  if p.marker_id in used and p.marker_id in reg.carm_from_marker else p for p in poses)
 
 
+def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration, at_ns: int) -> JointRefinement | None:
+    """What a joint solve ``reg`` (of ``poses`` with ``calibration``, on the frame stamped ``at_ns``) leaves for the frames after it.
+
+    None when the solve gave no covariance (a fallback path): the next frame then solves again.
+    """
+    if reg.covariance_drill is None or reg.pivot_carm_mm is None:
+        return None
+    return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(poses, reg), covariance_drill=reg.covariance_drill,
+                           pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns)
+
+
+def refinement_fits(refinement: JointRefinement | None, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration) -> bool:
+    """Whether ``refinement`` was solved with this registration and calibration (by identity: a swap of either is a new solve)."""
+    return refinement is not None and refinement.source_poses is poses and refinement.calibration is calibration
+
+
+def refinement_due(refinement: JointRefinement, *, now_ns: int, joint_period_ns: int = JOINT_PERIOD_NS) -> bool:
+    """Whether ``refinement`` is at least ``joint_period_ns`` old at ``now_ns`` (the caller's clock, ns)."""
+    return now_ns - refinement.at_ns >= joint_period_ns
+
+
 @dataclass(frozen=True, kw_only=True)
 class FrameAxis:
     """One frame's result.
@@ -110,12 +139,14 @@ class FrameAxis:
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
                 limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
-                joint_period_ns: int = JOINT_PERIOD_NS) -> FrameAxis:
+                joint_period_ns: int | None = JOINT_PERIOD_NS) -> FrameAxis:
     """The drill axis in C from one camera frame and the fluoroscopy marker poses.
 
     ``limits``: the 90 % bounds above which the axis is flagged unreliable (``predicted_error.reliable``).
     ``refinement``, ``now_ns``: the previous frame's :class:`JointRefinement` and a monotonic time (live callers;
-    see the module docstring); without them the frame runs the joint solve.
+    see the module docstring); without them the frame runs the joint solve. ``joint_period_ns`` None: an old
+    refinement is never re-solved here (the caller schedules that; a refinement of another registration or
+    calibration still is).
 
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
@@ -123,15 +154,11 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     video = calibration.locator.locate(image)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
-    fresh = (refinement is None or refinement.source_poses is not poses or refinement.calibration is not calibration
-             or now_ns - refinement.at_ns >= joint_period_ns)
+    fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
+             or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
         reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
-        refinement = None
-        if reg.covariance_drill is not None and reg.pivot_carm_mm is not None:
-            refinement = JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(poses, reg),
-                                         covariance_drill=reg.covariance_drill, pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm),
-                                         at_ns=now_ns)
+        refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:
         reg = register_video_to_fluoro(video, refinement.poses, marker_set, calibration.camera, joint=False)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),

@@ -46,6 +46,8 @@ __all__ = [
     "FluoroMarkers",
     "AuditEntry",
     "MarkerPoseMsg",
+    "VideoMarkers",
+    "VideoTag",
     "compressed_image",
     "decode_compressed_image",
     "parse_compressed_image",
@@ -326,12 +328,33 @@ class AuditEntry(_Message):
     detail: dict[str, Any] = Field(default_factory=dict)
 
 
-MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers, AuditEntry)
+# -- the drill camera's detections (the display's camera preview draws them) -----------------------------
+Corner2 = tuple[float, float]
+
+
+@dataclass(config=_CONFIG, kw_only=True)
+class VideoTag:
+    id: int = Field(description="the marker id (markers.json)")
+    corners_px: tuple[Corner2, Corner2, Corner2, Corner2] = Field(description="tag corners (column, row) px, OpenCV order TL, TR, BR, BL")
+
+
+@_bind
+@dataclass(config=_CONFIG, kw_only=True)
+class VideoMarkers(_Message):
+    """The markers the node found in one camera frame, on ``camera/markers`` (after that frame's axis)."""
+
+    schema_name = "drillnav.VideoMarkers"
+    stamp_ns: NonNegInt = Field(description="capture stamp of the camera frame")
+    image_size: tuple[int, int] = Field(description="frame width, height (px)")
+    markers: tuple[VideoTag, ...]
+    ignored_ids: tuple[int, ...] = Field((), description="ArUco ids seen that are not in the marker set")
+
+
+MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers, AuditEntry, VideoMarkers)
 
 JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     **{c.schema_name: c.json_schema() for c in MESSAGE_CLASSES},
-    # Written by hand: the node publishes neither (the twin's truth, and detections for tools).
-    "drillnav.VideoMarkers": {"type": "object", "required": ["stamp_ns", "markers"], "properties": {"stamp_ns": {"type": "integer"}, "markers": {"type": "array"}}},
+    # Written by hand: the node does not publish it (the twin's truth).
     "drillnav.TwinTruth": {"type": "object", "required": ["frame_stamp_ns", "carm_from_drill", "drill_axis_carm"]},
 }
 

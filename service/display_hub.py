@@ -41,6 +41,8 @@ __all__ = ["DisplayHub", "DisplayClient", "CtVolumeForDisplay"]
 MAX_VIEWS = 4
 CT_MAX_VOXELS_PER_AXIS = 256   # the volume a browser reslices: <= 16 MB at 8 bits
 CT_WINDOW_HU = (400.0, 1800.0)  # level, width: bone, as the CLI's CT views
+RECENT_FRAMES = 30          # camera frames held (about 1 s) for the preview that waits for the node's tags
+TAGS_WAIT_NS = 500_000_000  # no tags from the node for this long: previews go out without them (the node tracks nothing)
 _AXIS_KEYS = ("point_mm", "direction", "predicted_error", "source_frame_stamp_ns")
 
 
@@ -119,6 +121,8 @@ class DisplayHub:
         self._events: deque[str] = deque(maxlen=20)
         self._event_n = 0
         self._last_camera_ns = 0
+        self._recent_frames: dict[int, tuple[str, bytes]] = {}  # capture stamp -> (format, the camera frame), the last RECENT_FRAMES: a preview waits for its tags
+        self._last_tags_ns = 0  # monotonic: when the node last sent tags (0: never)
         self._ct_display: CtVolumeForDisplay | None = None
         self._subs: list[Any] = []
         self.decode_errors = 0
@@ -129,7 +133,8 @@ class DisplayHub:
         k = lambda name, view=None: key(self.prefix, name, view)  # noqa: E731
         handlers = [(k("axis_carm"), self._on_axis), (k("axis_ct"), self._on_axis_ct), (k("fluoro_shot"), self._on_shot),
                     (k("fluoro_image", "*"), self._on_view_image), (k("camera_image"), self._on_camera), (k("status"), self._on_status),
-                    (k("events"), self._on_event), (k("fluoro_markers"), self._on_markers)]
+                    (k("events"), self._on_event), (k("fluoro_markers"), self._on_markers),
+                    (k("camera_markers"), self._on_camera_tags)]
         for key_expr, handler in handlers:
             self._subs.append(self.session.declare_subscriber(key_expr, self._guarded(handler)))
         return self
@@ -224,14 +229,38 @@ class DisplayHub:
         self._send(f"event:{n}", text, keep=False)
 
     def _on_camera(self, sample: zenoh.Sample) -> None:
-        now = time.monotonic_ns()
-        if now - self._last_camera_ns < self.camera_period_ns:
-            return  # the preview is a thumbnail of what the camera sees, not the guidance: a few per second
-        self._last_camera_ns = now
         img = CompressedImage()
         img.ParseFromString(sample.payload.to_bytes())
         stamp = img.timestamp.seconds * 1_000_000_000 + img.timestamp.nanos
-        self._send("camera", json.dumps({"type": "camera", "stamp_ns": stamp, "format": img.format, "data_base64": base64.b64encode(img.data).decode()}))
+        now = time.monotonic_ns()
+        with self._lock:
+            self._recent_frames[stamp] = (img.format, img.data)
+            while len(self._recent_frames) > RECENT_FRAMES:
+                del self._recent_frames[next(iter(self._recent_frames))]
+            # While the node tracks, a preview goes out with its tags (_on_camera_tags); without tags, the frame alone.
+            tracking = self._last_tags_ns and now - self._last_tags_ns < TAGS_WAIT_NS
+            if tracking or now - self._last_camera_ns < self.camera_period_ns:
+                return
+            self._last_camera_ns = now
+        self._send_preview(stamp, img.format, img.data, None)
+
+    def _on_camera_tags(self, sample: zenoh.Sample) -> None:
+        # A preview is the frame the tags were found in, sent with them: outlines that never belong to another frame,
+        # at the node's pace (a frame the node dropped has no tags and is never a preview while it tracks).
+        text = self._raw_json(sample, "stamp_ns", "image_size", "markers")
+        stamp = json.loads(text)["stamp_ns"]
+        now = time.monotonic_ns()
+        with self._lock:
+            self._last_tags_ns = now
+            frame = self._recent_frames.get(stamp)
+            if frame is None or now - self._last_camera_ns < self.camera_period_ns:
+                return  # a preview a few times a second, not every tracked frame
+            self._last_camera_ns = now
+        self._send_preview(stamp, frame[0], frame[1], text)
+
+    def _send_preview(self, stamp: int, fmt: str, data: bytes, tags_json: str | None) -> None:
+        self._send("camera", f'{{"type":"camera","stamp_ns":{stamp},"format":{json.dumps(fmt)},"data_base64":"{base64.b64encode(data).decode()}",'
+                             f'"tags":{tags_json or "null"}}}')
 
     def _on_shot(self, sample: zenoh.Sample) -> None:
         doc = json.loads(sample.payload.to_bytes())

@@ -5,7 +5,9 @@ queue of one), so under overload stale frames are dropped and counted, never
 queued. Each new fluoroscopy shot (``fluoro/shot``) triggers marker detection
 and a new marker registration in a worker thread; every camera frame then goes
 through the live pipeline (:func:`~drillnav.registration.pipeline.track_frame`)
-to the axis in C with its predicted error. With a
+to the axis in C with its predicted error, the periodic joint solve in a worker
+process (:class:`~drillnav.service.joint_worker.JointSolveWorker`); the tags it
+found go out on ``camera/markers`` after the axis. With a
 :class:`~drillnav.service.ct_tracker.CtTracker` (video-CT mode), each marker
 registration also hands the shots to the CT registration, and every frame's
 axis is published in the CT frame too, with conformance to the plan.
@@ -43,9 +45,10 @@ from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import MarkerPose, register_markers
 from drillnav.registration.markers import MarkerSet
 from drillnav.registration.overlay import annotate, draw_axis, draw_detections, to_display
-from drillnav.registration.pipeline import LiveCalibration, ReliableLimits, track_frame
+from drillnav.registration.pipeline import LiveCalibration, ReliableLimits
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
+from drillnav.service.joint_worker import JointSolveWorker
 
 __all__ = ["RegistrationNode", "NodeCounters"]
 
@@ -116,7 +119,7 @@ class RegistrationNode:
         self.last_error: str | None = None
         self._registration_state = "waiting for fluoroscopy"
         self._sequence = 0
-        self._refinement = None  # the last joint solve, carried between frames (registration/pipeline.py)
+        self.joint = JointSolveWorker(marker_set=marker_set)  # the periodic joint solve, off the frame path (service/joint_worker.py)
         self._frame: deque = deque(maxlen=1)
         self._shots_in: deque = deque()
         self._wake = threading.Condition()
@@ -139,8 +142,10 @@ class RegistrationNode:
             self._pub_status = stack.enter_context(s.declare_publisher(key(p, "status"), encoding=json_enc))
             self._pub_events = stack.enter_context(s.declare_publisher(key(p, "events"), encoding=json_enc))
             self._pub_markers = stack.enter_context(s.declare_publisher(key(p, "fluoro_markers"), encoding=json_enc))
+            self._pub_video = stack.enter_context(s.declare_publisher(key(p, "camera_markers"), encoding=json_enc))
             stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
             stack.enter_context(s.declare_subscriber(key(p, "fluoro_shot"), self._on_shot))
+            stack.enter_context(self.joint)  # closed after the frame thread is joined (the stack unwinds in reverse)
             self._stop.clear()
             stack.callback(self._join_workers)
             self._started_ns = self._last_frame_done_ns = time.monotonic_ns()
@@ -367,9 +372,8 @@ class RegistrationNode:
         calibration, poses = self.calibration, self.poses  # one read each: a swap mid-frame does not mix calibrations
         if calibration is None or not poses:
             return
-        fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=self.reliable_limits,
-                         refinement=self._refinement, now_ns=stamp)  # capture time: a replay re-solves on the same frames
-        self._refinement = fa.refinement  # the frame thread's alone
+        # Scheduled on capture time: a replay re-solves and adopts on the same frames.
+        fa = self.joint.track(image, calibration=calibration, poses=poses, stamp_ns=stamp, limits=self.reliable_limits)
         reg, pe = fa.registration, fa.predicted_error
         now = time.time_ns()
         error = msg.PredictedError(position_mm=float(pe.position_mm), angle_deg=float(pe.angle_deg),
@@ -396,6 +400,11 @@ class RegistrationNode:
         with self._wake:
             self._overlay_axis = (fa.axis_full_carm, pe.angle_deg, now)
             self._wake.notify_all()
+        # After the axis (never in its latency): the tags this frame showed, for the display's camera preview and tools.
+        self._pub_video.put(msg.VideoMarkers(
+            stamp_ns=stamp, image_size=fa.video.image_size, ignored_ids=fa.video.ignored_ids,
+            markers=tuple(msg.VideoTag(id=int(m.marker_id), corners_px=tuple(map(tuple, m.corners_px.tolist()))) for m in fa.video.markers),
+        ).to_bytes())
 
     def _overlay_loop(self) -> None:
         """Overlays of the newest axis on each held shot, at most every ``overlay_period_s``, off the frame path."""

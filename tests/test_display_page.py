@@ -8,6 +8,7 @@ the host, and /docs and /redoc render without internet.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from typing import Any
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
+import zenoh
 
 from conftest import free_endpoint, free_port
 from display_browser import axis_pixels_js, fit_line_px, launch, line_distance_px, require_chromium
@@ -51,13 +53,21 @@ class BusDaemon:
 
     def start(self) -> None:
         rng = np.random.default_rng(3)
+        # Sent once: a put before the hub's subscription has reached this session is lost, so wait until each key matches.
+        keys = [key(PREFIX, "fluoro_shot"), key(PREFIX, "fluoro_markers")] + [key(PREFIX, "fluoro_image", name) for name in VIEWS]
+        pubs = {k: self.session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in keys}
+        deadline = time.monotonic() + 10
+        while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
         for name, view in VIEWS.items():
             img = (1.0 + 0.3 * rng.standard_normal((view.rows, view.columns))).astype(np.float32)
             stamp = time.time_ns()
-            self.session.put(key(PREFIX, "fluoro_shot"), msg.FluoroShot.build(img, view, stamp_ns=stamp, view_name=name).to_bytes())
-            self.session.put(key(PREFIX, "fluoro_image", name), msg.compressed_image(to_display(img), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
-        self.session.put(key(PREFIX, "fluoro_markers"), msg.encode_json({"stamp_ns": time.time_ns(), "registration_id": 1, "views": list(VIEWS),
+            pubs[key(PREFIX, "fluoro_shot")].put(msg.FluoroShot.build(img, view, stamp_ns=stamp, view_name=name).to_bytes())
+            pubs[key(PREFIX, "fluoro_image", name)].put(msg.compressed_image(to_display(img), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+        pubs[key(PREFIX, "fluoro_markers")].put(msg.encode_json({"stamp_ns": time.time_ns(), "registration_id": 1, "views": list(VIEWS),
                                                                            "markers": [{"id": i, "converged": True} for i in (1, 22, 29, 36)]}))
+        for p in pubs.values():
+            p.undeclare()
         self.axes_on.set()
         self.camera_on.set()
         self._thread.start()
@@ -70,7 +80,8 @@ class BusDaemon:
             n += 1
             stamp = time.time_ns()
             if self.camera_on.is_set() and n % 3 == 0:
-                self.session.put(key(PREFIX, "camera_image"), msg.compressed_image(np.full((48, 64, 3), 128, np.uint8), stamp_ns=stamp, frame_id="drill_camera"))
+                self.session.put(key(PREFIX, "camera_image"), msg.compressed_image(CAMERA_PICTURE, stamp_ns=stamp, frame_id="drill_camera"))
+                self.session.put(key(PREFIX, "camera_markers"), msg.VideoMarkers(stamp_ns=stamp, image_size=(64, 48), markers=(CAMERA_TAG,)).to_bytes())
             if n % 30 == 0:
                 self.session.put(key(PREFIX, "status"), msg.encode_json({"stamp_ns": stamp, "state": "registered", "registration_id": 1}))
             if not self.axes_on.is_set():
@@ -97,6 +108,10 @@ class BusDaemon:
         self._thread.join(timeout=5)
 
 
+CAMERA_TAG = msg.VideoTag(id=7, corners_px=((10.0, 10.0), (30.0, 10.0), (30.0, 30.0), (10.0, 30.0)))  # px of the 64 x 48 picture
+CAMERA_PICTURE = np.repeat(np.repeat((np.arange(64, dtype=np.uint8) * 4)[None, :, None], 48, axis=0), 3, axis=2)  # a ramp: a preview to read back
+
+
 class State:
     """The REST app's view of a service: only what the display needs (the app's other routes are tested elsewhere)."""
 
@@ -118,11 +133,9 @@ def _ct() -> Volume:
     return Volume(data=data, patient_from_voxel=np.diag([2.0, 2.0, 2.0, 1.0]) + np.array([[0, 0, 0, -50.0], [0, 0, 0, -50.0], [0, 0, 0, -50.0], [0, 0, 0, 0]]))
 
 
-@pytest.fixture(scope="module")
-def served():
-    exe = require_chromium()
-    from playwright.sync_api import sync_playwright
-
+@contextlib.contextmanager
+def display_server():
+    """The hub on a real zenoh bus fed by a :class:`BusDaemon`, and the REST app on uvicorn: yields (base URL, bus, hub)."""
     ep = free_endpoint()
     port = free_port()
     with open_session(listen=[ep]) as hub_session, open_session(connect=[ep]) as bus_session:
@@ -137,16 +150,24 @@ def served():
                     time.sleep(0.05)
                 time.sleep(0.3)  # the peer link between the two sessions
                 bus.start()
-                with sync_playwright() as pw:
-                    browser = launch(pw, exe)
-                    try:
-                        yield {"base": f"http://127.0.0.1:{port}", "bus": bus, "browser": browser, "hub": hub}
-                    finally:
-                        browser.close()
+                yield f"http://127.0.0.1:{port}", bus, hub
             finally:
                 bus.stop()
                 server.should_exit = True
                 t.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def served():
+    exe = require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with display_server() as (base, bus, hub), sync_playwright() as pw:
+        browser = launch(pw, exe)
+        try:
+            yield {"base": base, "bus": bus, "browser": browser, "hub": hub}
+        finally:
+            browser.close()
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +183,31 @@ def page(served):
     page.close()
 
 
+def assert_axis_on_projection(got: dict[str, Any], bus: BusDaemon) -> None:
+    """``got`` (``axis_pixels_js``, per view): the page's record and the axis pixels lie within 2 px of P applied to the published axis."""
+    assert set(got) == set(VIEWS)
+    for name, g in got.items():
+        axis = bus.axes[min(bus.axes, key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))]  # JS numbers hold ns stamps to ~0.3 us
+        view = VIEWS[name]
+        p = np.asarray(axis["point_mm"])
+        a, b = view.project(np.vstack([p, p + 100 * np.asarray(axis["direction"])]))
+        # The page's own record: both ends on the image border, on the projected line.
+        seg = np.asarray(g["drawn"]["segment"])
+        assert line_distance_px(seg, a, b).max() < 2.0, (name, seg, a, b)
+        for x, y in seg:  # each end on the image's border: the line runs across the whole image
+            assert min(abs(x + 0.5), abs(x - (view.columns - 0.5)), abs(y + 0.5), abs(y - (view.rows - 0.5))) < 1e-6, seg
+        # The pixels: a line across the whole image (long), within 2 px of the projection along all its length.
+        px = np.asarray(g["pixels"], dtype=np.float64)
+        assert len(px) > 1000, f"{name}: only {len(px)} axis pixels drawn"
+        c, u = fit_line_px(px)
+        ends = c + np.outer([-600, 600], u)
+        inside = np.array([e for e in np.linspace(ends[0], ends[1], 50) if 0 <= e[0] < view.columns and 0 <= e[1] < view.rows])
+        assert line_distance_px(inside, a, b).max() < 2.0, name
+        span = np.ptp(px @ u)
+        assert span > 0.8 * np.linalg.norm(seg[1] - seg[0]), f"{name}: the drawn axis spans {span:.0f} px of {np.linalg.norm(seg[1] - seg[0]):.0f}"
+        assert not g["drawn"]["stale"]
+
+
 def test_drawn_axis_lies_on_the_projection_of_the_published_axis(served, page):
     """Read back from the canvas: the axis-coloured pixels of each view fit a line within 2 px of P applied to the published axis."""
     bus = served["bus"]
@@ -171,27 +217,7 @@ def test_drawn_axis_lies_on_the_projection_of_the_published_axis(served, page):
         got = page.evaluate(axis_pixels_js)
         if any(g["drawn"]["stale"] for g in got.values()):
             continue
-        assert set(got) == set(VIEWS)
-        for name, g in got.items():
-            axis = bus.axes[min(bus.axes, key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))]  # JS numbers hold ns stamps to ~0.3 us
-            view = VIEWS[name]
-            p = np.asarray(axis["point_mm"])
-            a, b = view.project(np.vstack([p, p + 100 * np.asarray(axis["direction"])]))
-            # The page's own record: both ends on the image border, on the projected line.
-            seg = np.asarray(g["drawn"]["segment"])
-            assert line_distance_px(seg, a, b).max() < 2.0, (name, seg, a, b)
-            for x, y in seg:  # each end on the image's border: the line runs across the whole image
-                assert min(abs(x + 0.5), abs(x - (view.columns - 0.5)), abs(y + 0.5), abs(y - (view.rows - 0.5))) < 1e-6, seg
-            # The pixels: a line across the whole image (long), within 2 px of the projection along all its length.
-            px = np.asarray(g["pixels"], dtype=np.float64)
-            assert len(px) > 1000, f"{name}: only {len(px)} axis pixels drawn"
-            c, u = fit_line_px(px)
-            ends = c + np.outer([-600, 600], u)
-            inside = np.array([e for e in np.linspace(ends[0], ends[1], 50) if 0 <= e[0] < view.columns and 0 <= e[1] < view.rows])
-            assert line_distance_px(inside, a, b).max() < 2.0, name
-            span = np.ptp(px @ u)
-            assert span > 0.8 * np.linalg.norm(seg[1] - seg[0]), f"{name}: the drawn axis spans {span:.0f} px of {np.linalg.norm(seg[1] - seg[0]):.0f}"
-            assert not g["drawn"]["stale"]
+        assert_axis_on_projection(got, bus)
         time.sleep(0.2)
 
 
@@ -202,6 +228,26 @@ def test_always_on_numbers(page):
     ages = page.locator(".view figcaption .age").all_inner_texts()
     assert len(ages) == 3 and all(a.endswith(" s ago") for a in ages), ages
     assert page.locator(".alert").count() == 0, page.locator("#alerts").inner_text()
+
+
+def test_camera_preview_is_decoded_off_the_main_thread_and_drawn_with_its_tags(page):
+    page.wait_for_function("window.drillnav.camerasShown >= 2", timeout=5000)
+    spread = page.evaluate("() => { const c = document.getElementById('camera-canvas'), d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+                           " let lo = 255, hi = 0; for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); hi = Math.max(hi, d[i]); }"
+                           " return {w: c.width, h: c.height, lo, hi}; }")
+    assert spread["w"] == 320 and spread["h"] == 240, spread  # decoded straight to the preview's width
+    assert spread["hi"] - spread["lo"] > 50, spread  # a picture, not a blank canvas
+    # The tag of that very frame (camera/markers of the same stamp), outlined where its corners are: x5 on the 320 px preview.
+    # Read in one evaluation with the record of what was drawn, so a newer preview cannot come between.
+    got = page.wait_for_function("(() => { const t = window.drillnav.tagsDrawn; if (!t) return null;"
+                                 " const x = document.getElementById('camera-canvas').getContext('2d'), px = (c, r) => Array.from(x.getImageData(c, r, 1, 1).data);"
+                                 " return {t, edge: px(102, 52), left: px(52, 120), away: px(250, 200)}; })()", timeout=5000).json_value()
+    assert got["t"]["ids"] == [7] and got["t"]["scale"] == 5, got
+    for name in ("edge", "left"):  # bluish green #009E73 on the grey ramp
+        r, g, b, _ = got[name]
+        assert g > r + 80 and b > r + 50, got
+    r, g, b, _ = got["away"]
+    assert abs(r - g) < 12 and abs(g - b) < 12, got  # the picture itself, untouched away from the tag
 
 
 def test_stale_alert_within_a_second_of_the_camera_stopping(served, page):

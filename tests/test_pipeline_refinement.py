@@ -10,6 +10,7 @@ from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import JOINT_PERIOD_NS, LiveCalibration, track_frame
 from drillnav.schemas import messages as msg
+from drillnav.service.joint_worker import JointSolveWorker
 from drillnav.service.replay import iter_recording
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
@@ -51,3 +52,60 @@ def test_a_new_registration_calibration_or_period_runs_the_joint_solve_again(liv
     assert track_frame(frames[1], calibration=cal, poses=new_poses, marker_set=scene.marker_set, refinement=ref, now_ns=1).registration.method == "joint"
     new_cal = LiveCalibration.build(camera=cal.camera, axis_drill=cal.axis_drill, marker_set=scene.marker_set)
     assert track_frame(frames[1], calibration=new_cal, poses=poses, marker_set=scene.marker_set, refinement=ref, now_ns=1).registration.method == "joint"
+
+
+def _stamps(n: int, *, period_ns: int = 33_333_333) -> list[int]:
+    return [1_000_000_000 + k * period_ns for k in range(n)]
+
+
+def test_the_worker_solves_periodically_off_the_frame_path_and_frames_adopt_on_capture_time(live):
+    scene, poses, cal, frames = live
+    frames = (frames * 4)[:40]  # ~1.3 s of capture time at 30 frames/s: two periodic solves
+    stamps = _stamps(len(frames))
+    with JointSolveWorker(marker_set=scene.marker_set, joint_period_ns=400_000_000, adopt_after_ns=100_000_000) as worker:
+        worker.wait_ready()  # frames come faster than capture time here: a worker still importing would be solved around (inline)
+        out = [worker.track(f, calibration=cal, poses=poses, stamp_ns=s) for f, s in zip(frames, stamps)]
+        counters = worker.counters
+    assert out[0].registration.method == "joint"  # the first frame of a registration: solved at once, on the frame path
+    assert all(fa.registration.method != "joint" for fa in out[1:]), "a periodic solve ran on the frame path"
+    # Requested on the first frame 0.4 s after the last solve, adopted on the first frame 0.1 s after that: capture time alone decides.
+    req1 = next(k for k, s in enumerate(stamps) if s - stamps[0] >= 400_000_000)
+    adopt1 = next(k for k, s in enumerate(stamps) if s >= stamps[req1] + 100_000_000)
+    req2 = next(k for k, s in enumerate(stamps) if s - stamps[req1] >= 400_000_000)
+    adopt2 = next(k for k, s in enumerate(stamps) if s >= stamps[req2] + 100_000_000)
+    expected = [stamps[0]] * adopt1 + [stamps[req1]] * (adopt2 - adopt1) + [stamps[req2]] * (len(out) - adopt2)
+    assert [fa.refinement.at_ns for fa in out] == expected
+    assert counters.requested >= 2 and counters.adopted == 2 and counters.inline == 0 and counters.failed == 0
+    # The worker's solve is the frame path's solve of the same frame: the same refined markers.
+    inline = track_frame(frames[req1], calibration=cal, poses=poses, marker_set=scene.marker_set, now_ns=stamps[req1]).refinement
+    adopted = out[adopt1].refinement
+    for a, b in zip(adopted.poses, inline.poses):
+        np.testing.assert_allclose(a.carm_from_marker, b.carm_from_marker, atol=1e-9)
+    np.testing.assert_allclose(adopted.covariance_drill, inline.covariance_drill, rtol=1e-6, atol=1e-12)
+
+
+def test_a_new_registration_drops_the_pending_solve_and_a_dead_worker_is_replaced(live):
+    scene, poses, cal, frames = live
+    stamps = _stamps(24)
+    with JointSolveWorker(marker_set=scene.marker_set, joint_period_ns=100_000_000, adopt_after_ns=100_000_000) as worker:
+        worker.wait_ready()
+        for k in range(5):  # a solve is requested at frame 3
+            worker.track(frames[k % len(frames)], calibration=cal, poses=poses, stamp_ns=stamps[k])
+        assert worker.counters.requested == 1
+        new_poses = tuple(list(poses))  # another registration, though equal
+        fa = worker.track(frames[5 % len(frames)], calibration=cal, poses=new_poses, stamp_ns=stamps[5])
+        assert fa.registration.method == "joint" and fa.refinement.source_poses is new_poses  # solved at once, never the old one adopted
+        assert worker.counters.dropped == 1 and worker.counters.adopted == 0
+        # Kill the worker process mid-run: the adopting frame solves the same inputs itself, the next request gets a new process.
+        for proc in list(worker._pool._processes.values()):  # noqa: SLF001 - the test needs the real process to kill
+            proc.kill()
+            proc.join(5)
+        for k in range(6, 14):  # request at the first frame 0.1 s after frame 5, adopted 0.1 s later
+            worker.track(frames[k % len(frames)], calibration=cal, poses=new_poses, stamp_ns=stamps[k])
+        c = worker.counters
+        assert c.requested >= 2 and c.adopted == 1 and c.failed == 0, c
+        worker.wait_ready()  # a new process (the dead one's replacement) serves the next request
+        inline_before = c.inline
+        for k in range(14, 24):
+            worker.track(frames[k % len(frames)], calibration=cal, poses=new_poses, stamp_ns=stamps[k])
+        assert c.adopted >= 2 and c.inline == inline_before and c.failed == 0, c

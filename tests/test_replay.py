@@ -40,6 +40,7 @@ def test_replay_through_the_node_matches_truth():
         with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill) as node:
             node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
             node_session.declare_subscriber(key("drillnav", "twin_truth"), lambda s: truth.__setitem__((d := msg.decode_json(s.payload.to_bytes()))["frame_stamp_ns"], d))
+            node.joint.wait_ready()  # the joint-solve worker process imports for a second or two: frames streamed meanwhile would drop
             time.sleep(0.5)
             n = replay(RECORDING, player, rate=1.0)
             time.sleep(1.0)
@@ -107,6 +108,7 @@ def _replay_through_a_node(path: Path, *, settle_s: float, rate: float) -> tuple
         node = replay_node(path, session=node_session, prefix="drillnav")
         node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(msg.decode_json(s.payload.to_bytes())))
         try:
+            node.joint.wait_ready()  # the joint-solve worker's start-up would otherwise compete with the first frames
             time.sleep(0.5)
             result = replay(path, player, rate=rate, state_settle_s=settle_s)
             deadline = time.monotonic() + 5
@@ -134,6 +136,7 @@ def test_a_sigkill_cut_file_and_a_rotated_middle_file_replay_to_the_live_axes(tm
             node_session.declare_subscriber(key("drillnav", "axis_carm"), lambda s: live_axes.append(msg.decode_json(s.payload.to_bytes())))
             rec = Recorder(session=rec_session, prefix="drillnav", folder=tmp_path / "rotated", name="live", rotate_bytes=400_000)
             assert int(child.stdout.readline()) == 0  # the child records
+            node.joint.wait_ready()
             time.sleep(0.5)
             # As the daemon does at start: the calibrations in use, on the bus.
             source.put(key("drillnav", "calibration"), calibration_message_from_models(

@@ -7,6 +7,8 @@ const STALE_MS = 500;          // no new axis for this long: the overlay greys o
 const CAMERA_LOST_MS = 1500;   // no camera preview (sent at ~5 Hz) for this long
 const COLOURS = { axis: "#F0E442", cone: "#E69F00", plan: "#56B4E9", entry: "#CC79A7", ok: "#009E73", alarm: "#D55E00", stale: "#9a9a9a" };
 const CONE_REACH_MM = 400;     // the cone is drawn this far either side of the working point
+const PANEL_PERIOD_MS = 200;   // the numbers' text is rewritten at most this often: text that changes every frame re-lays out the page every frame
+const CAMERA_WIDTH_PX = 320;   // the preview is decoded straight to this width, off the main thread
 
 const S = window.drillnav = {
   connected: false, serverOffsetMs: 0, plan: [], ctAvailable: false,
@@ -14,6 +16,7 @@ const S = window.drillnav = {
   views: {},                   // name -> {stamp_ns, P (3x4), rows, columns, image, canvas, overlay, drawn}
   newAxis: false, newAxisCt: false, lastDrawnStamp: 0,
   latenciesMs: [], hubToDrawnMs: [], repeats: 0, framesDrawn: 0, axesReceived: 0, alerts: [], mode: "fluoro", ct: null, ctDrawn: null,
+  camerasShown: 0, panelAt: -Infinity, preview: null, tagsDrawn: null,
 };
 
 // ---- small linear algebra ------------------------------------------------------------------------------
@@ -94,10 +97,46 @@ function serverNowMs() { return Date.now() - S.serverOffsetMs; }
 function ageS(stampNs) { return Math.max(0, (serverNowMs() - stampNs / 1e6) / 1000); }
 function fmtAge(s) { return s < 60 ? `${s.toFixed(s < 10 ? 1 : 0)} s` : `${Math.floor(s / 60)} min ${Math.round(s % 60)} s`; }
 
+// The preview is decoded by createImageBitmap (off the main thread, straight to the preview's size) and drawn on a
+// small canvas: an <img> given a data URL decodes the full frame on the main thread at paint, in the frame that
+// draws the axis. A preview arriving while the previous one decodes is skipped (a thumbnail, a few per second).
+let cameraDecoding = false;
 function showCamera(m, now) {
-  const img = document.getElementById("camera-img");
-  img.src = `data:image/${m.format === "png" ? "png" : "jpeg"};base64,${m.data_base64}`;
   S.cameraStamp = m.stamp_ns; S.cameraRecvPerf = now;
+  if (cameraDecoding) return;
+  cameraDecoding = true;
+  const bin = atob(m.data_base64), bytes = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
+  const blob = new Blob([bytes], { type: m.format === "png" ? "image/png" : "image/jpeg" });
+  const stamp = m.stamp_ns, tags = m.tags;
+  createImageBitmap(blob, { resizeWidth: CAMERA_WIDTH_PX, resizeQuality: "medium" }).then((bmp) => {
+    if (S.preview) S.preview.bmp.close();
+    S.preview = { bmp, stamp, tags };
+    drawPreview();
+    S.camerasShown++;
+  }).catch(() => {}).finally(() => { cameraDecoding = false; });  // an undecodable preview: the next one tries again
+}
+
+// The preview with the tags the node found in that very frame (the hub sends them together; null when the node
+// tracks nothing): outlined and numbered. Tags of another frame are never drawn on it.
+function drawPreview() {
+  const c = document.getElementById("camera-canvas"), { bmp, stamp, tags: t } = S.preview;
+  if (c.width !== bmp.width || c.height !== bmp.height) { c.width = bmp.width; c.height = bmp.height; }
+  const ctx = c.getContext("2d");
+  ctx.drawImage(bmp, 0, 0);
+  if (!t || t.stamp_ns !== stamp) { S.tagsDrawn = null; return; }
+  const k = c.width / t.image_size[0];
+  ctx.font = "bold 18px sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle"; ctx.lineJoin = "round";
+  for (const tag of t.markers) {
+    const q = tag.corners_px.map(([x, y]) => [(x + 0.5) * k - 0.5, (y + 0.5) * k - 0.5]);
+    ctx.lineWidth = 2; ctx.strokeStyle = COLOURS.ok; polyline(ctx, q); ctx.closePath(); ctx.stroke();
+    // The id beside the tag, white on a black edge: legible over the tag's own pattern and the background alike.
+    const cx = q.reduce((s, p) => s + p[0], 0) / 4, top = Math.min(...q.map((p) => p[1]));
+    const y = top > 14 ? top - 10 : Math.max(...q.map((p) => p[1])) + 10;
+    ctx.lineWidth = 4; ctx.strokeStyle = "#000"; ctx.strokeText(String(tag.id), cx, y);
+    ctx.fillStyle = "#fff"; ctx.fillText(String(tag.id), cx, y);
+  }
+  S.tagsDrawn = { stamp_ns: stamp, ids: t.markers.map((tag) => tag.id), scale: k };
 }
 
 function addEvent(e) {
@@ -329,7 +368,10 @@ function alerts(now) {
   return out;
 }
 
-function updatePanel(now) {
+function updatePanel(now, force) {
+  updateAlerts(now);  // every frame: an alert must never wait
+  if (!force && now - S.panelAt < PANEL_PERIOD_MS) return;
+  S.panelAt = now;
   const a = S.axis, st = S.status || {};
   const set = (id, text, bad) => { const e = document.getElementById(id); if (e.textContent !== text) e.textContent = text; e.parentElement.classList.toggle("bad", !!bad); };
   if (a) set("v-error", `${a.predicted_error.position_mm.toFixed(1)} mm, ${a.predicted_error.angle_deg.toFixed(1)}°`, a.predicted_error.position_mm > 2 || a.predicted_error.angle_deg > 2);
@@ -346,11 +388,14 @@ function updatePanel(now) {
     const t = `${fmtAge(ageS(v.stamp_ns))} ago`;
     const age = v.cap.querySelector(".age"); if (age.textContent !== t) age.textContent = t;
   }
-  if (S.cameraStamp) document.getElementById("camera-cap").textContent = `camera, ${fmtAge(ageS(S.cameraStamp))} ago`;
+  if (S.cameraStamp) { const cap = document.getElementById("camera-cap"), t = `camera, ${fmtAge(ageS(S.cameraStamp))} ago`; if (cap.textContent !== t) cap.textContent = t; }
+}
+
+function updateAlerts(now) {
   const list = alerts(now);
   const key = JSON.stringify(list);
-  if (key !== JSON.stringify(S.alerts)) {
-    S.alerts = list;
+  if (key !== S.alertsKey) {
+    S.alerts = list; S.alertsKey = key;
     const box = document.getElementById("alerts"); box.replaceChildren();
     for (const [level, text] of list) { const d = document.createElement("div"); d.className = `alert ${level}`; d.textContent = text; box.append(d); }
   }
@@ -378,8 +423,8 @@ function frame(t) {
   }
   const ctStale = !S.axisCt || now - S.axisCtRecvPerf > STALE_MS;
   if (S.mode === "ct" && S.ct && (S.newAxisCt || ctStale !== S.lastCtStale || !S.ctDrawn)) { drawCt(ctStale); S.newAxisCt = false; S.lastCtStale = ctStale; }
+  updatePanel(now, stale !== lastStale);  // going stale (or live) is shown in the same frame as the greyed overlay
   lastStale = stale;
-  updatePanel(now);
   requestAnimationFrame(frame);
 }
 

@@ -1,0 +1,173 @@
+"""The periodic joint solve off the frame path: a worker process, and the capture-time schedule on which frames adopt it.
+
+The joint solve of every marker pose and the drill pose (``registration/joint_solve.py``, ~27 ms on the twin) ran
+on the frame thread every ``JOINT_PERIOD_NS`` of capture time: one frame in fifteen at 30 frames/s took four times
+as long as the others, and that frame set the daemon's p99. :class:`JointSolveWorker` gives it to a worker process
+(spawned: never fork a process that runs zenoh's threads; a process, not a thread, because the solve is mostly
+Python in scipy's ``least_squares`` and would hold the GIL the frame thread needs), and the frames go on with the
+refinement they have.
+
+Schedule (deterministic, so a recording replayed gives the axes it gave live):
+
+- a frame whose refinement does not fit the registration or calibration in use (a new shot, a new calibration)
+  still runs the joint solve on the frame path, as before: the first axis of a new registration is joint-solved;
+- a frame stamped ``s`` whose refinement is ``JOINT_PERIOD_NS`` old asks the worker for a solve of its own
+  detections;
+- that solve is adopted by the first frame stamped at or after ``s + adopt_after_ns`` (three frames at 30 frames/s
+  by default), which waits for it if it is not done (up to ``wait_s``; then it solves the same inputs itself: the
+  same result, later). Which frame adopts which solve depends on capture stamps alone, never on the worker's speed.
+- a solve requested under another registration or calibration than the adopting frame's is dropped (never mixed).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.errors import DrillnavError
+from drillnav.registration.marker_pose import MarkerPose
+from drillnav.registration.markers import MarkerSet
+from drillnav.registration.pipeline import (JOINT_PERIOD_NS, FrameAxis, JointRefinement, LiveCalibration, ReliableLimits, joint_refinement,
+                                            refinement_due, track_frame)
+from drillnav.registration.video_fluoro import DrillRegistration, register_video_to_fluoro
+from drillnav.registration.video_markers import VideoDetections
+
+__all__ = ["JointSolveWorker", "JointSolveCounters", "ADOPT_AFTER_NS", "WAIT_S"]
+
+ADOPT_AFTER_NS = 100_000_000  # capture time from a solve's frame to the frame that adopts it (ns): ~4x the solve's own time
+WAIT_S = 1.0  # the adopting frame waits this long for the worker before solving the same inputs itself
+
+_marker_set: MarkerSet | None = None  # the worker process's own copy, sent once
+
+
+def _init_worker(marker_set: MarkerSet) -> None:
+    global _marker_set
+    _marker_set = marker_set
+
+
+def _solve(video: VideoDetections, poses: tuple[MarkerPose, ...], camera: PinholeCamera) -> DrillRegistration | str:
+    # A failure comes back as its message: a typed error with keyword-only fields may not survive pickling.
+    try:
+        return register_video_to_fluoro(video, poses, _marker_set, camera)
+    except Exception as exc:  # noqa: BLE001 - reported by the adopting frame
+        return f"{type(exc).__name__}: {exc}"
+
+
+def _ready() -> bool:
+    return True
+
+
+@dataclass
+class JointSolveCounters:
+    requested: int = 0      # periodic solves given to the worker
+    adopted: int = 0        # of them, adopted by a frame
+    inline: int = 0         # solved on the frame path because the worker was late or broken
+    dropped: int = 0        # requested under a registration or calibration replaced before adoption
+    failed: int = 0         # the solve raised (the frames keep the refinement they had)
+    last_failure: str | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Pending:
+    at_ns: int
+    video: VideoDetections
+    poses: tuple[MarkerPose, ...]
+    calibration: LiveCalibration
+    future: concurrent.futures.Future
+
+
+class JointSolveWorker:
+    """Tracks frames like :func:`~drillnav.registration.pipeline.track_frame`, with the periodic joint solve in a worker process.
+
+    Use as a context manager (the process starts in ``__enter__``); call :meth:`track` from one thread only (the
+    node's frame thread).
+    """
+
+    def __init__(self, *, marker_set: MarkerSet, joint_period_ns: int = JOINT_PERIOD_NS, adopt_after_ns: int = ADOPT_AFTER_NS,
+                 wait_s: float = WAIT_S) -> None:
+        if adopt_after_ns < 0 or joint_period_ns <= 0 or wait_s < 0:
+            raise ValueError(f"joint_period_ns must be > 0, adopt_after_ns and wait_s >= 0 (got {joint_period_ns}, {adopt_after_ns}, {wait_s})")
+        self.marker_set = marker_set
+        self.joint_period_ns, self.adopt_after_ns, self.wait_s = joint_period_ns, adopt_after_ns, wait_s
+        self.counters = JointSolveCounters()
+        self.refinement: JointRefinement | None = None
+        self._pending: _Pending | None = None
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._started: concurrent.futures.Future | None = None
+
+    def __enter__(self) -> JointSolveWorker:
+        self._pool = self._new_pool()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        pool, self._pool, self._pending = self._pool, None, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _new_pool(self) -> concurrent.futures.ProcessPoolExecutor:
+        pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                      initializer=_init_worker, initargs=(self.marker_set,))
+        self._started = pool.submit(_ready)  # start the process now (imports take a second or two), not on the first periodic solve
+        return pool
+
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        """Block until the worker process has started (a caller that feeds frames faster than capture time, e.g. a test)."""
+        self._started.result(timeout=timeout_s)
+
+    def track(self, image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], stamp_ns: int,
+              limits: ReliableLimits = ReliableLimits()) -> FrameAxis:
+        """One frame (capture stamp ``stamp_ns``) to its axis; raises what ``track_frame`` raises."""
+        pending = self._pending
+        if pending is not None and not (pending.poses is poses and pending.calibration is calibration):
+            pending.future.cancel()
+            self._pending, pending = None, None
+            self.counters.dropped += 1
+        if pending is not None and stamp_ns >= pending.at_ns + self.adopt_after_ns:
+            self._pending = None
+            adopted = self._adopt(pending)
+            if adopted is not None:
+                self.refinement = adopted
+        fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=limits, refinement=self.refinement,
+                         now_ns=stamp_ns, joint_period_ns=None)
+        self.refinement = fa.refinement
+        if (self._pending is None and fa.refinement is not None and self._pool is not None
+                and refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns)):
+            future = self._submit(fa.video, poses, calibration.camera)
+            self._pending = _Pending(at_ns=stamp_ns, video=fa.video, poses=poses, calibration=calibration, future=future)
+            self.counters.requested += 1
+        return fa
+
+    def _submit(self, video: VideoDetections, poses: tuple[MarkerPose, ...], camera: PinholeCamera) -> concurrent.futures.Future:
+        try:
+            return self._pool.submit(_solve, video, poses, camera)
+        except BrokenProcessPool:  # the worker died (killed, out of memory): a new one, once
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = self._new_pool()
+            return self._pool.submit(_solve, video, poses, camera)
+
+    def _adopt(self, p: _Pending) -> JointRefinement | None:
+        try:
+            reg = p.future.result(timeout=self.wait_s)
+        except (concurrent.futures.TimeoutError, concurrent.futures.CancelledError, BrokenProcessPool):
+            p.future.cancel()
+            self.counters.inline += 1
+            try:
+                reg = register_video_to_fluoro(p.video, p.poses, self.marker_set, p.calibration.camera)
+            except (DrillnavError, ValueError) as exc:
+                reg = f"{type(exc).__name__}: {exc}"
+        if isinstance(reg, str):
+            self.counters.failed += 1
+            self.counters.last_failure = reg
+            return None
+        self.counters.adopted += 1
+        return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns)
+
