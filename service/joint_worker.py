@@ -41,7 +41,8 @@ from drillnav.registration.video_markers import VideoDetections
 __all__ = ["JointSolveWorker", "JointSolveCounters", "ADOPT_AFTER_NS", "WAIT_S"]
 
 ADOPT_AFTER_NS = 100_000_000  # capture time from a solve's frame to the frame that adopts it (ns): ~4x the solve's own time
-WAIT_S = 1.0  # the adopting frame waits this long for the worker before solving the same inputs itself
+WAIT_S = 0.02  # the adopting frame waits this long for the worker before solving the same inputs itself: no longer than
+# the solve itself takes (~27 ms), so a late worker (a loaded machine) costs one inline solve, never a gap in the stream
 
 _marker_set: MarkerSet | None = None  # the worker process's own copy, sent once
 

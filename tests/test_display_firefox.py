@@ -40,7 +40,9 @@ def _pref(name: str, value: object) -> str:
 def firefox(tmp_path_factory):
     exe = shutil.which("firefox-esr") or shutil.which("firefox")
     if exe is None:
-        pytest.skip("firefox-esr is not installed (apt-get install -y firefox-esr)")
+        if os.environ.get("CI"):
+            pytest.fail("firefox-esr is missing on CI: .ci/run installs it with apt-get install -y firefox-esr")
+        pytest.skip("firefox-esr is not installed (apt-get install -y firefox-esr); CI installs it")
     marionette = pytest.importorskip("marionette_driver.marionette", reason="pip install marionette_driver")
     profile = tmp_path_factory.mktemp("firefox-profile")
     port = free_port()
