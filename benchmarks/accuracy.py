@@ -153,14 +153,27 @@ def _pooled(name: str, result: dict) -> list[dict]:
         tried = sum(result["tried"][k] for k in keys)
         s = {"degradation": name, "views": nv, "n": len(a), "tried": tried, "refusal_pct": 100.0 * sum(reasons.values()) / max(tried, 1), "refusals": dict(reasons)}
         if len(a):
-            q = np.percentile(a[:, :2], [25, 50, 75, 95], axis=0)
             worst = max((np.median(np.array(result["rows"][k])[:, 0]), k[0]) for k in keys if result["rows"].get(k))
-            s |= {"pos_q": q[:, 0].tolist(), "ang_q": q[:, 1].tolist(), "outlier_pct": 100.0 * float(((a[:, 0] > 10) | (a[:, 1] > 10)).mean()),
-                  "cover_pos_pct": 100.0 * float(np.mean(a[:, 0] <= a[:, 2])), "cover_ang_pct": 100.0 * float(np.mean(a[:, 1] <= a[:, 3])),
-                  "unreliable_pct": 100.0 * float(np.mean(a[:, 4] < 0.5)), "worst_pair": worst[1], "worst_pair_pos_median": float(worst[0]),
-                  "unflagged_over_10deg": int(np.sum((a[:, 1] > 10) & (a[:, 4] > 0.5)))}
+            s |= _stats(a) | {"worst_pair": worst[1], "worst_pair_pos_median": float(worst[0])}
         out.append(s)
     return out
+
+
+def _stats(a: np.ndarray) -> dict:
+    """Quartiles and p95 of position and angle, outliers, coverage of the 90 % bounds, flagged, from rows (n, 5)."""
+    q = np.percentile(a[:, :2], [25, 50, 75, 95], axis=0)
+    return {"pos_q": q[:, 0].tolist(), "ang_q": q[:, 1].tolist(), "outlier_pct": 100.0 * float(((a[:, 0] > 10) | (a[:, 1] > 10)).mean()),
+            "cover_pos_pct": 100.0 * float(np.mean(a[:, 0] <= a[:, 2])), "cover_ang_pct": 100.0 * float(np.mean(a[:, 1] <= a[:, 3])),
+            "unflagged_over_10deg": int(np.sum((a[:, 1] > 10) & (a[:, 4] > 0.5))), "unreliable_pct": 100.0 * float(np.mean(a[:, 4] < 0.5))}
+
+
+def _cells(s: dict) -> str:
+    """The table cells from n to flagged of one summary."""
+    if s["n"] == 0:
+        return f"0 | - | - | - | - | - | {s['refusal_pct']:.0f} % | - | -"
+    p, a = s["pos_q"], s["ang_q"]
+    return (f"{s['n']} | {p[1]:.2f} [{p[0]:.2f}-{p[2]:.2f}] | {p[3]:.2f} | {a[1]:.2f} [{a[0]:.2f}-{a[2]:.2f}] | {a[3]:.2f} | "
+            f"{s['outlier_pct']:.1f} % | {s['refusal_pct']:.0f} % | {s['cover_pos_pct']:.0f} / {s['cover_ang_pct']:.0f} % | {s['unreliable_pct']:.0f} %")
 
 
 def summarise(result: dict) -> list[dict]:
@@ -172,11 +185,7 @@ def summarise(result: dict) -> list[dict]:
         s = {"pair": pair, "views": nv, "M": m, "method": method, "n": len(a), "tried": result["tried"][key],
              "refusal_pct": 100.0 * refused / result["tried"][key], "refusals": dict(result["refusals"].get(key, {}))}
         if len(a):
-            q = np.percentile(a[:, :2], [25, 50, 75, 95], axis=0)
-            big = (a[:, 0] > 10) | (a[:, 1] > 10)
-            s |= {"pos_q": q[:, 0].tolist(), "ang_q": q[:, 1].tolist(), "outlier_pct": 100.0 * float(big.mean()),
-                  "cover_pos_pct": 100.0 * float(np.mean(a[:, 0] <= a[:, 2])), "cover_ang_pct": 100.0 * float(np.mean(a[:, 1] <= a[:, 3])),
-                  "unflagged_over_10deg": int(np.sum((a[:, 1] > 10) & (a[:, 4] > 0.5))), "unreliable_pct": 100.0 * float(np.mean(a[:, 4] < 0.5))}
+            s |= _stats(a)
         out.append(s)
     return out
 
@@ -225,15 +234,7 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
     for s in summary:
         ref = REFERENCE.get((s["views"], s["M"]))
         ref_txt = "%.1f mm / %.1f deg" % ref if ref else "-"
-        if s["n"] == 0:
-            lines.append(f"| {s['pair']} | {s['views']} | {s['M']} | {s['method']} | 0 | - | - | - | - | - | {s['refusal_pct']:.0f} % | - | - | - | {ref_txt} |")
-            continue
-        p, a = s["pos_q"], s["ang_q"]
-        lines.append(
-            f"| {s['pair']} | {s['views']} | {s['M']} | {s['method']} | {s['n']} | {p[1]:.2f} [{p[0]:.2f}-{p[2]:.2f}] | {p[3]:.2f} | "
-            f"{a[1]:.2f} [{a[0]:.2f}-{a[2]:.2f}] | {a[3]:.2f} | {s['outlier_pct']:.1f} % | {s['refusal_pct']:.0f} % | "
-            f"{s['cover_pos_pct']:.0f} / {s['cover_ang_pct']:.0f} % | {s['unreliable_pct']:.0f} % | {s['unflagged_over_10deg']} | {ref_txt} |"
-        )
+        lines.append(f"| {s['pair']} | {s['views']} | {s['M']} | {s['method']} | {_cells(s)} | {s.get('unflagged_over_10deg', '-')} | {ref_txt} |")
     lines += [
         "",
         "## How the product registers (what these figures measure)",
@@ -270,14 +271,8 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
         ]
         for s in per_deg:
             ref = "%.1f mm / %.1f deg" % REFERENCE[(s["views"], 5)]
-            if s["n"] == 0:
-                lines.append(f"| {s['degradation']} | {s['views']} | 0 | - | - | - | - | - | {s['refusal_pct']:.0f} % | - | - | - | {ref} |")
-                continue
-            p, a = s["pos_q"], s["ang_q"]
-            lines.append(
-                f"| {s['degradation']} | {s['views']} | {s['n']} | {p[1]:.2f} [{p[0]:.2f}-{p[2]:.2f}] | {p[3]:.2f} | {a[1]:.2f} [{a[0]:.2f}-{a[2]:.2f}] | {a[3]:.2f} | "
-                f"{s['outlier_pct']:.1f} % | {s['refusal_pct']:.0f} % | {s['cover_pos_pct']:.0f} / {s['cover_ang_pct']:.0f} % | {s['unreliable_pct']:.0f} % | "
-                f"{s['worst_pair']} ({s['worst_pair_pos_median']:.2f}) | {ref} |")
+            worst = f"{s['worst_pair']} ({s['worst_pair_pos_median']:.2f})" if s["n"] else "-"
+            lines.append(f"| {s['degradation']} | {s['views']} | {_cells(s)} | {worst} | {ref} |")
     lines += [
         "",
         '## What these figures do not show yet',
