@@ -333,7 +333,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--poses", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="2 seeds, 1 pose: a smoke run (about 40 s of CPU; 3.6 min on the shared 2-core machine)")
+    ap.add_argument("--quick", action="store_true", help="2 seeds, 1 pose, every degradation but ct_anatomy: a smoke run (70 s on the shared 2-core machine)")
     ap.add_argument("--no-docs", action="store_true")
     ap.add_argument("--degradations", default=None, help="all | none | comma-separated names from drivers/sim/degradations.py "
                     "(default all; with --quick all but ct_anatomy, whose DRRs take ~25 s a shot)")
