@@ -129,7 +129,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
         refinement = None
         if reg.covariance_drill is not None and reg.pivot_carm_mm is not None:
-            refinement = JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(poses, reg),
+            refinement = JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg),
                                          covariance_drill=reg.covariance_drill, pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm),
                                          at_ns=now_ns)
     else:
@@ -137,6 +137,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers")
         poses = refinement.poses
+    poses = reg.marker_poses or poses  # with the markers claimed through the video (edge-on in fluoroscopy)
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
     work = axis.closest_point(centroid)

@@ -8,7 +8,9 @@
 3. PnP on every tag corner: the corners' 3D positions in C (from each
    registered marker pose and the design) against their sub-pixel image
    positions, so all markers constrain the camera pose together.
-4. When the marker poses carry their BB observations (``register_markers``
+4. With the joint solve, markers the camera sees claim their BBs in views where fluoroscopy did not identify
+   them (:mod:`.video_claims`: the camera's marker constellation fitted to the identified ones predicts them).
+   When the marker poses carry their BB observations (``register_markers``
    keeps them), one joint solve of all marker poses and ``carm_from_drill``
    over every BB and every tag corner (:mod:`.joint_solve`), with its
    covariance; ``joint=False`` stops after step 3 (the former pipeline).
@@ -35,6 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
+from .video_claims import claim_from_video
 from .video_markers import VideoDetections
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -77,6 +80,9 @@ class DrillRegistration:
     pivot_carm_mm: NDArray[np.float64] | None = None
     carm_from_marker: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     method: str = "horn+pnp"
+    # The marker poses registered: those given, with the BBs claimed through the video's identities
+    # (:mod:`.video_claims`) and the markers found that way; empty without the joint solve.
+    marker_poses: tuple = ()
 
 
 def register_video_to_fluoro(
@@ -92,8 +98,12 @@ def register_video_to_fluoro(
     """``carm_from_drill`` from the markers seen by the camera and localised in fluoroscopy.
 
     ``joint``: finish with the joint solve of every marker pose and the drill pose when the marker poses carry
-    their BB observations (the default); False keeps the former Horn + corner PnP pipeline.
+    their BB observations (the default); False keeps the former Horn + corner PnP pipeline. With the joint
+    solve, markers the camera sees claim their BBs where fluoroscopy did not identify them
+    (:func:`.video_claims.claim_from_video`), so an edge-on marker in a single view still counts.
     """
+    if joint:
+        marker_poses = claim_from_video(video, tuple(marker_poses), marker_set)
     every = {p.marker_id: p for p in marker_poses}
     poses = {i: p for i, p in every.items() if p.converged}
     vids = video.by_id()
@@ -154,7 +164,7 @@ def register_video_to_fluoro(
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
-        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint")
+        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses))
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
