@@ -48,26 +48,34 @@ def fit_constellation(anchors: dict[int, tuple], drill_from_marker_: dict[int, N
     starts : candidate ``carm_from_drill`` (4, 4); the best fit over all of them wins (a single marker's
         planar pose has a mirror solution, so both are tried).
     """
-    rows = [(view.projection_matrix, apply(drill_from_marker_[i], obj), np.asarray(img, dtype=np.float64))
-            for i, obs in anchors.items() for view, obj, img in obs]
+    pts, img, proj = [], [], []
+    for i, obs in anchors.items():
+        for view, obj, px in obs:
+            pts.append(apply(drill_from_marker_[i], obj))
+            img.append(np.asarray(px, dtype=np.float64))
+            proj.append(np.repeat(view.projection_matrix[None], len(obj), axis=0))
+    pts_d, img_a, proj_a = np.concatenate(pts), np.concatenate(img), np.concatenate(proj)
 
     def residual(x):
         t = from_rotvec(x[:3], x[3:])
-        out = []
-        for p, pts_d, img in rows:
-            h = apply(t, pts_d) @ p[:, :3].T + p[:, 3]
-            out.append((h[:, :2] / h[:, 2:3] - img).ravel())
-        return np.concatenate(out)
+        pc = pts_d @ t[:3, :3].T + t[:3, 3]
+        h = np.einsum("nij,nj->ni", proj_a[:, :, :3], pc) + proj_a[:, :, 3]
+        return (h[:, :2] / h[:, 2:3] - img_a).ravel()
 
+    def rms(x):
+        r = residual(x).reshape(-1, 2)
+        return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+    # Refine only the two starts that fit best as they are (the right one and its mirror, typically).
+    xs = [np.concatenate(to_rotvec(start)) for start in starts]
+    xs = sorted(xs, key=rms)[:2]
     best = None
-    for start in starts:
-        rv, t = to_rotvec(start)
+    for x0 in xs:
         # Soft L1 beyond 2 px: one anchor identified wrongly must not drag the constellation.
-        sol = least_squares(residual, np.concatenate([rv, t]), loss="soft_l1", f_scale=2.0, max_nfev=200)
-        r = residual(sol.x).reshape(-1, 2)
-        rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
-        if best is None or rms < best[1]:
-            best = (from_rotvec(sol.x[:3], sol.x[3:]), rms)
+        sol = least_squares(residual, x0, loss="soft_l1", f_scale=2.0, max_nfev=100)
+        fit = rms(sol.x)
+        if best is None or fit < best[1]:
+            best = (from_rotvec(sol.x[:3], sol.x[3:]), fit)
     return best
 
 
@@ -92,6 +100,9 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     if not views or not anchors:
         return marker_poses
     d_from_m = {i: drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm) for i in vids if i in in_set}
+    # Nothing to claim when every marker the camera sees is observed in every view (the usual live case).
+    if all(i in by_id and {id(o[0]) for o in by_id[i].observations} >= set(views) for i in d_from_m):
+        return marker_poses
     starts = []
     for i in anchors:
         p = by_id[i]

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from .camera import PinholeCamera
 from .errors import DegenerateInput, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .joint_solve import joint_solve
+from .joint_solve import FOCAL_REL_SIGMA, joint_solve
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
@@ -209,7 +209,7 @@ def predicted_axis_error(
     fluoro_sigma_mm: float = 0.15,
     axis_sigma_mm: float = 0.1,
     axis_sigma_deg: float = 0.085,
-    focal_rel_sigma: float = 0.002,
+    focal_rel_sigma: float = FOCAL_REL_SIGMA,
     samples: int = 64,
     seed: int = 0,
     position_limit_mm: float = RELIABLE_POSITION_MM,
@@ -219,7 +219,7 @@ def predicted_axis_error(
 
     With a joint solve (``registration.covariance_drill``): draws of the drill
     pose from its covariance (which already carries the camera's calibration
-    uncertainty and is scaled by the fit's reduced chi-square), with the
+    uncertainty and the BBs' and corners' noise as their residuals show it), with the
     calibrated drill axis drawn from its own uncertainty (drill.json).
     Without: draws of the video X_D from their covariances with a common
     focal-length scale error, the fluoroscopy X_C with ``fluoro_sigma_mm``,
