@@ -14,7 +14,9 @@ from numpy.typing import NDArray
 
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.markers import MarkerDesign
-from drillnav.registration.transforms import invert
+from drillnav.registration.transforms import apply, invert
+
+from .degradations import Degradations, degrade_camera_frame
 
 __all__ = ["render_markers", "tag_texture"]
 
@@ -52,8 +54,12 @@ def render_markers(
     glare: bool = True,
     supersample: int = 2,
     occlusion: tuple[float, float, float] | None = None,
+    degradations: Degradations | None = None,
 ) -> NDArray[np.uint8]:
     """Render a grayscale frame (height, width) uint8 of the given markers.
+
+    With camera ``degradations`` (``drivers/sim/degradations.py``) the frame gets
+    those too, and is (height, width, 3) BGR when ``colour`` is on.
 
     camera : the TRUE intrinsics and distortion.
     camera_from_marker : marker id -> (4, 4) pose of the marker frame in frame D.
@@ -62,6 +68,7 @@ def render_markers(
     img = _background(camera, rng)
     h, w = camera.height, camera.width
     s = supersample
+    tags_px: list[NDArray[np.float64]] = []
     for marker_id, pose in camera_from_marker.items():
         design = markers[marker_id]
         base_r = design.ring_radius_mm + 2.0
@@ -76,6 +83,7 @@ def render_markers(
         c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, w), min(r1, h)
         if c0 >= c1 or r0 >= r1:
             continue
+        tags_px.append(camera.project(apply(pose, design.tag_corners_mm())))
         offs = (np.arange(s) + 0.5) / s - 0.5
         u = (np.arange(c0, c1)[:, None] + offs).reshape(-1)
         v = (np.arange(r0, r1)[:, None] + offs).reshape(-1)
@@ -115,6 +123,8 @@ def render_markers(
         oc, orow, orad = occlusion
         yy, xx = np.mgrid[0:h, 0:w]
         img[(xx - oc) ** 2 + (yy - orow) ** 2 < orad**2] = 140.0
+    if degradations is not None and degradations.camera:
+        return degrade_camera_frame(img, degradations=degradations, rng=rng, tags_px=tags_px, noise_sigma=noise_sigma, blur_sigma_px=blur_sigma_px)
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
     img += rng.normal(scale=noise_sigma, size=img.shape).astype(np.float32)

@@ -13,7 +13,7 @@ target points, as a surgeon's planning would give it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +30,7 @@ __all__ = ["VoxelAnatomy", "handed_copy", "SKIN_HU"]
 
 SKIN_HU = -400.0  # body / air boundary
 RENDER_STEP_MM = 0.35
+DRR_CACHE_SIZE = 24  # ~7.6 MB each at 976x976
 
 
 def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -43,6 +44,7 @@ class VoxelAnatomy:
     volume: Volume
     corridor: Corridor
     truth_mu: DrrVolume
+    _drr_cache: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_volume(cls, volume: Volume, *, corridor: Corridor) -> "VoxelAnatomy":
@@ -54,8 +56,18 @@ class VoxelAnatomy:
         return cls(volume=volume, corridor=c, truth_mu=DrrVolume.from_ct(volume))
 
     def line_integrals(self, view: CArmView, carm_from_ct: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step."""
-        return render_drr(self.truth_mu, view, carm_from_ct, step_mm=RENDER_STEP_MM).astype(np.float64)
+        """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step.
+
+        The last few are kept: a study shoots the same patient and view under
+        several degradations, and one DRR of the CT takes tens of seconds.
+        """
+        key = (view.projection_matrix.tobytes(), view.rows, view.columns, np.asarray(carm_from_ct, dtype=np.float64).tobytes())
+        cache = self._drr_cache
+        if key not in cache:
+            if len(cache) >= DRR_CACHE_SIZE:
+                cache.pop(next(iter(cache)))
+            cache[key] = render_drr(self.truth_mu, view, carm_from_ct, step_mm=RENDER_STEP_MM).astype(np.float64)
+        return cache[key].copy()
 
     def skin_along(self, inside_mm: NDArray[np.float64], outward: NDArray[np.float64], *, max_mm: float = 400.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """March from ``inside_mm`` along ``outward`` to the skin: the skin point (3,) and outward normal (3,)."""

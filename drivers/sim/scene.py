@@ -27,7 +27,8 @@ from drillnav.registration.transforms import apply, from_rotvec, invert, make_tr
 from . import anatomy
 from .ct_anatomy import VoxelAnatomy
 from .camera import render_markers
-from .xray import MU_PER_MM, add_cylinder, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
+from .degradations import LEAD_LINE_INTEGRAL, Box, Degradations, Hardware, collimator_mask, ii_distortion_maps, make_hardware
+from .xray import MU_PER_MM, add_box, add_cylinder, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
 
 __all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
 
@@ -91,6 +92,8 @@ class Scene:
     kwire: bool = True                         # the K-wire is in the drill (and in the fluoroscopy)
     voxel_anatomy: VoxelAnatomy | None = None  # a real CT as the patient (None: the analytic pelvis)
     table_y_mm: tuple[float, float] = TABLE_Y_MM
+    degradations: Degradations = field(default_factory=Degradations)  # what the operating room adds (default: none)
+    hardware: Hardware = ()                    # surgical metal in the field (frame C), with ``degradations.hardware``
 
     def kwire_carm(self, carm_from_drill: NDArray[np.float64] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
         """The K-wire as (chuck end, tip) in C (mm), its tip at the true axis's point nearest the corridor entry."""
@@ -117,6 +120,8 @@ class Scene:
         return {i: drill_from_carm @ t for i, t in self.carm_from_marker.items()}
 
     def render_camera(self, rng: np.random.Generator, *, carm_from_drill: NDArray[np.float64] | None = None, **kwargs) -> NDArray[np.uint8]:
+        if self.degradations.camera:
+            kwargs.setdefault("degradations", self.degradations)
         return render_markers(camera=self.true_camera, camera_from_marker=self.camera_from_marker(carm_from_drill), markers=self.manufactured, rng=rng, **kwargs)
 
     def drill_pose_towards(self, rng: np.random.Generator, *, offset_mm: float = 3.0, tilt_deg: float = 3.0, standoff_mm: float = 290.0) -> NDArray[np.float64]:
@@ -141,20 +146,66 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _place_on_skin(rng, ids, carm_from_ct, skin_at) -> dict[int, NDArray[np.float64]]:
-    """Markers round a 50 mm circle, each resting on the skin: ``skin_at(radius_mm, angle_rad) -> (point, normal)`` in V."""
+# The patient's anterior direction in V (LPS): the AP beam's axis, from which a surgeon's marker tilts.
+ANTERIOR_V = np.array([0.0, -1.0, 0.0])
+MIN_MARKER_SPACING_MM = 58.0  # a surgeon keeps the 48 mm rings apart on the skin
+
+
+def _on_front(skin_at, r: float, a: float) -> bool:
+    """Whether (r, a) lands on the body's front (not off the outline, not on the flank)."""
+    try:
+        _, normal = skin_at(r, a)
+    except ValueError:
+        return False
+    return bool(normal @ ANTERIOR_V > np.cos(np.radians(60.0)))
+
+
+def _surgeon_sites(rng, n: int, degradations: Degradations, skin_at) -> list[tuple[float, float]]:
+    """(radius_mm, angle_rad) about the incision, spread unevenly as a surgeon sticks them, one by one, rings not touching."""
+    sites: list[tuple[float, float]] = []
+    for _ in range(2000):
+        r, a = float(rng.uniform(*degradations.marker_radius_mm)), float(rng.uniform(0, 2 * np.pi))
+        xy = np.array([r * np.cos(a), r * np.sin(a)])
+        if all(np.hypot(*(xy - [ri * np.cos(ai), ri * np.sin(ai)])) >= MIN_MARKER_SPACING_MM for ri, ai in sites) and _on_front(skin_at, r, a):
+            sites.append((r, a))
+            if len(sites) == n:
+                return sites
+    raise SceneError(f"{n} markers do not fit {MIN_MARKER_SPACING_MM:.0f} mm apart within {degradations.marker_radius_mm[1]:.0f} mm of the incision")
+
+
+def _surgeon_normal(rng, skin_normal, degradations: Degradations) -> NDArray[np.float64]:
+    """The marker's normal tilted 10-40 deg from the AP axis, towards where the skin itself tilts."""
+    tangential = skin_normal - (skin_normal @ ANTERIOR_V) * ANTERIOR_V
+    toward = _unit(tangential) if np.linalg.norm(tangential) > 0.05 else _unit(np.cross(ANTERIOR_V, rng.normal(size=3)))
+    tilt = np.radians(rng.uniform(*degradations.marker_tilt_deg))
+    return Rotation.from_rotvec(tilt * _unit(np.cross(ANTERIOR_V, toward))).apply(ANTERIOR_V)
+
+
+def _place_on_skin(rng, ids, carm_from_ct, skin_at, degradations: Degradations | None = None) -> dict[int, NDArray[np.float64]]:
+    """Markers round a 50 mm circle, each resting on the skin: ``skin_at(radius_mm, angle_rad) -> (point, normal)`` in V.
+
+    With ``degradations.surgeon_markers``: where a surgeon sticks them instead (uneven, 40-95 mm out, tilted 10-40 deg).
+    """
     n = len(ids)
+    surgeon = degradations is not None and degradations.surgeon_markers
     radius = 50.0 if n > 1 else 0.0
     phase = rng.uniform(0, 2 * np.pi)
+    sites = _surgeon_sites(rng, n, degradations, skin_at) if surgeon else None
     poses = {}
     for k, marker_id in enumerate(ids):
-        a = phase + 2 * np.pi * k / n + rng.normal(scale=0.08)
-        r = radius + rng.normal(scale=2.0)
+        if surgeon:
+            r, a = sites[k]
+        else:
+            a = phase + 2 * np.pi * k / n + rng.normal(scale=0.08)
+            r = radius + rng.normal(scale=2.0)
         try:
             p, normal = skin_at(r, a)
         except ValueError as exc:
             raise SceneError(f"marker {marker_id} cannot be placed on the skin {r:.0f} mm from the entry: {exc}") from None
-        normal = Rotation.from_rotvec(np.radians(5.0) * _unit(rng.normal(size=3))).apply(normal)
+        if surgeon:
+            normal = _surgeon_normal(rng, normal, degradations)
+        else:
+            normal = Rotation.from_rotvec(np.radians(5.0) * _unit(rng.normal(size=3))).apply(normal)
         z = _unit(normal)
         x = _unit(np.cross([0.0, 0.0, 1.0], z))
         y = np.cross(z, x)
@@ -164,19 +215,19 @@ def _place_on_skin(rng, ids, carm_from_ct, skin_at) -> dict[int, NDArray[np.floa
     return poses
 
 
-def _place_markers(rng, ids, carm_from_ct, corridor) -> dict[int, NDArray[np.float64]]:
+def _place_markers(rng, ids, carm_from_ct, corridor, degradations=None) -> dict[int, NDArray[np.float64]]:
     """On the analytic body's anterior skin, about the corridor's skin entry."""
     centre_v, _ = anatomy.skin_entry(corridor)
-    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: anatomy.skin_point(centre_v[0] + r * np.cos(a), centre_v[2] + r * np.sin(a)))
+    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: anatomy.skin_point(centre_v[0] + r * np.cos(a), centre_v[2] + r * np.sin(a)), degradations)
 
 
-def _place_markers_ct(rng, ids, carm_from_ct, patient: VoxelAnatomy) -> dict[int, NDArray[np.float64]]:
+def _place_markers_ct(rng, ids, carm_from_ct, patient: VoxelAnatomy, degradations=None) -> dict[int, NDArray[np.float64]]:
     """On a real CT's skin about the trajectory's skin entry, each cast onto the skin along the trajectory."""
     centre, _ = patient.skin_entry()
     d = anatomy.corridor_direction(patient.corridor)
     u = _unit(np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0.0, 0.0]))
     v = np.cross(d, u)
-    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: patient.skin_along(centre + r * (np.cos(a) * u + np.sin(a) * v) + 40.0 * d, -d))
+    return _place_on_skin(rng, ids, carm_from_ct, lambda r, a: patient.skin_along(centre + r * (np.cos(a) * u + np.sin(a) * v) + 40.0 * d, -d), degradations)
 
 
 def _perturbed_camera(rng, camera: PinholeCamera) -> PinholeCamera:
@@ -194,9 +245,20 @@ def _perturbed_axis(rng, axis: Line3D) -> Line3D:
     return Line3D(point_mm=axis.point_mm + rng.normal(scale=0.1, size=3), direction=d)
 
 
-def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dose_quanta: float = 12000.0,
+def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dose_quanta: float | None = None,
                   carm_from_drill: NDArray[np.float64] | None = None) -> NDArray[np.float32]:
-    """Measured log attenuation (rows, columns) of one shot, with the twin's physics (the K-wire where the drill is)."""
+    """Measured log attenuation (rows, columns) of one shot, with the twin's physics (the K-wire where the drill is).
+
+    ``dose_quanta``: quanta per pixel unattenuated; None: 12,000, or drawn from
+    ``scene.degradations.dose_quanta`` with ``low_dose``. The scene's other
+    fluoroscopy degradations (hardware, collimator, image-intensifier
+    distortion) apply here too.
+    """
+    deg = scene.degradations
+    if dose_quanta is None:
+        dose_quanta = float(rng.uniform(*deg.dose_quanta)) if deg.low_dose else 12000.0
+    if not dose_quanta > 0:
+        raise SceneError(f"dose must be > 0 quanta per pixel, got {dose_quanta}")
     view = scene.views[view_name]
     rays = pixel_rays(view)
     if scene.voxel_anatomy is not None:
@@ -213,11 +275,24 @@ def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dos
     wire = scene.kwire_carm(carm_from_drill)
     if wire is not None:
         add_cylinder(line, view, wire[0], wire[1], radius_mm=KWIRE_RADIUS_MM, mu=MU_PER_MM["steel"], rays=rays)
+    for part in scene.hardware:
+        if isinstance(part, Box):
+            add_box(line, view, centre_mm=np.asarray(part.centre_mm), carm_from_box_rotation=np.asarray(part.axes), half_size_mm=np.asarray(part.half_size_mm),
+                    mu=MU_PER_MM["steel"], rays=rays)
+        else:
+            add_cylinder(line, view, np.asarray(part.start_mm), np.asarray(part.end_mm), radius_mm=part.radius_mm, mu=MU_PER_MM["steel"], rays=rays)
     # Beam hardening: a polyenergetic beam attenuates less per mm the more it has crossed.
     hardened = 6.0 * np.log1p(line / 6.0)
     primary = dose_quanta * np.exp(-hardened)
+    if deg.collimator:
+        # Lead at the source stops the primary (no hardening model needed for it), so the shadow also scatters less.
+        primary *= np.exp(-LEAD_LINE_INTEGRAL * collimator_mask(rng, view.rows, view.columns))
     scatter = 0.12 * cv2.GaussianBlur(primary, (0, 0), 35.0)
     counts = rng.poisson(primary + scatter).astype(np.float64)
+    if deg.ii_distortion:
+        # The intensifier's electron optics bend the image after the input phosphor caught the quanta.
+        map_x, map_y = ii_distortion_maps(view.rows, view.columns, pincushion_px=deg.ii_pincushion_px, s_px=deg.ii_s_px)
+        counts = cv2.remap(counts, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     counts = cv2.GaussianBlur(counts, (0, 0), 0.6)
     return (-np.log(np.maximum(counts, 0.5) / dose_quanta)).astype(np.float32)
 
@@ -234,11 +309,17 @@ def make_scene(
     bb_manufacturing_sigma_mm: float = 0.05,
     kwire: bool = True,
     voxel_anatomy: VoxelAnatomy | None = None,
+    degradations: Degradations | None = None,
 ) -> Scene:
     """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only).
 
     ``voxel_anatomy``: a real CT as the patient, with its planned trajectory (``corridor`` is then unused).
+    ``degradations``: what an operating room adds (``drivers/sim/degradations.py``); None: none.
+    ``ct_anatomy`` among them needs ``voxel_anatomy`` (the caller loads the CT).
     """
+    degradations = degradations if degradations is not None else Degradations()
+    if degradations.ct_anatomy and voxel_anatomy is None:
+        raise SceneError("the ct_anatomy degradation needs voxel_anatomy= (a real CT loaded by the caller, e.g. ../shared/data/ct/cxr.nii.gz)")
     rng = np.random.default_rng(seed)
     design_set = default_marker_set()
     if marker_ids is None:
@@ -257,7 +338,7 @@ def make_scene(
 
     # Patient on the table: the entry site near the isocentre, a few degrees and mm off.
     try:
-        skin, _ = voxel_anatomy.skin_entry() if voxel_anatomy is not None else anatomy.skin_entry(target)
+        skin, skin_normal = voxel_anatomy.skin_entry() if voxel_anatomy is not None else anatomy.skin_entry(target)
     except ValueError as exc:
         raise SceneError(f"the trajectory {target.name} does not reach the skin: {exc}") from None
     centre_v = 0.8 * skin + 0.2 * np.asarray(target.entry_mm)
@@ -265,11 +346,11 @@ def make_scene(
     carm_from_ct[:3, 3] = -carm_from_ct[:3, :3] @ centre_v + rng.normal(scale=3.0, size=3)
 
     if voxel_anatomy is not None:
-        poses = _place_markers_ct(rng, marker_ids, carm_from_ct, voxel_anatomy)
+        poses = _place_markers_ct(rng, marker_ids, carm_from_ct, voxel_anatomy, degradations)
         back = voxel_anatomy.posterior_extent_mm(carm_from_ct)
         table_y = (back + 2.0, back + 27.0)  # the table top just under the patient's back
     else:
-        poses = _place_markers(rng, marker_ids, carm_from_ct, target)
+        poses = _place_markers(rng, marker_ids, carm_from_ct, target, degradations)
         table_y = TABLE_Y_MM
     manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}
     true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=76.0, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
@@ -291,6 +372,9 @@ def make_scene(
         kwire=kwire,
         voxel_anatomy=voxel_anatomy,
         table_y_mm=table_y,
+        degradations=degradations,
+        hardware=make_hardware(np.random.default_rng([seed, 5]), site_carm_mm=apply(carm_from_ct, skin), anterior_carm=carm_from_ct[:3, :3] @ skin_normal)
+        if degradations.hardware else (),
     )
     if not render:
         return scene

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from drillnav.registration.carm import CArmView
 
-__all__ = ["add_ellipsoids", "add_spheres", "add_ring", "add_cylinder", "add_slab", "pixel_rays", "MU_PER_MM"]
+__all__ = ["add_ellipsoids", "add_spheres", "add_ring", "add_cylinder", "add_slab", "add_box", "pixel_rays", "MU_PER_MM"]
 
 # Linear attenuation at ~60 keV effective (1/mm).
 MU_PER_MM = {"soft": 0.020, "cancellous": 0.030, "cortical": 0.055, "tungsten": 7.0, "steel": 0.95, "table": 0.008}
@@ -181,3 +181,34 @@ def add_slab(image: NDArray[np.float64], view: CArmView, *, y_min_mm: float, y_m
     hi = np.minimum(hi, np.maximum(tx0, tx1))
     length = np.nan_to_num(np.clip(hi, 0, None) - np.clip(lo, 0, None), nan=0.0, posinf=0.0)
     image += mu * np.clip(length, 0.0, 200.0)
+
+
+def add_box(
+    image: NDArray[np.float64],
+    view: CArmView,
+    *,
+    centre_mm: NDArray[np.float64],
+    carm_from_box_rotation: NDArray[np.float64],
+    half_size_mm: NDArray[np.float64],
+    mu: float,
+    rays: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+) -> None:
+    """Add a solid oriented box (a retractor blade) by exact chord lengths (slab method in the box's frame).
+
+    ``carm_from_box_rotation`` (3, 3): the box's axes as columns in frame C; ``half_size_mm`` (3,) along them.
+    """
+    src, d = rays if rays is not None else pixel_rays(view)
+    r = np.asarray(carm_from_box_rotation, dtype=np.float64)
+    o = r.T @ (src - np.asarray(centre_mm, dtype=np.float64))
+    db = d @ r
+    lo = np.full(d.shape[:-1], -np.inf)
+    hi = np.full(d.shape[:-1], np.inf)
+    for k, h in enumerate(np.asarray(half_size_mm, dtype=np.float64)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0 = (-h - o[k]) / db[..., k]
+            t1 = (h - o[k]) / db[..., k]
+        parallel = np.abs(db[..., k]) < 1e-12
+        inside = abs(o[k]) <= h
+        lo = np.where(parallel, np.where(inside, lo, np.inf), np.maximum(lo, np.minimum(t0, t1)))
+        hi = np.where(parallel, np.where(inside, hi, -np.inf), np.minimum(hi, np.maximum(t0, t1)))
+    image += mu * np.clip(np.nan_to_num(hi - lo, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
