@@ -32,6 +32,10 @@ __all__ = ["drill_from_marker", "fit_constellation", "claim_from_video"]
 # After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
 # the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
 SEARCH_PX = 30.0
+# Each BB within this of its shifted prediction: low-dose BB centres scatter by 1-3 px (measured on the
+# degraded twin), where the cross-view claim's 2.5 px lost markers; 3 BBs on one common shift within a
+# 30 px search still do not happen by chance among a view's few dozen blobs.
+TOL_PX = 3.5
 
 
 def drill_from_marker(camera_from_tag: NDArray[np.float64], tag_center_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -125,7 +129,7 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
             for k, (view, _) in views.items():
                 if k in seen or len(free[k]) < min_bbs:
                     continue
-                found = claim_bbs(view, pose, marker_set.by_id(i).bb_centers_mm, free[k], search_px=SEARCH_PX, min_bbs=min_bbs)
+                found = claim_bbs(view, pose, marker_set.by_id(i).bb_centers_mm, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
                 if found is not None and (best is None or len(found[0]) > len(best[3])):
                     best = (i, k, view, *found)
         if best is None:
