@@ -70,6 +70,7 @@ class JointSolution:
     corner_rms_px: float
     reduced_chi2: float
     converged: bool
+    chi2: float = float("nan")  # sum of the squared normalised residuals
 
 
 def perturb_about(delta: NDArray[np.float64], target_from_source: NDArray[np.float64], pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -293,5 +294,6 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         fluoro_rms_px=float(np.sqrt(np.mean(np.sum(rf**2, axis=1)))) * fluoro_sigma_px,
         corner_rms_px=float(np.sqrt(np.mean(np.sum(rc**2, axis=1)))) * corner_sigma_px,
         reduced_chi2=red,
+        chi2=float(np.sum(res**2)),
         converged=bool(sol.success),
     )
