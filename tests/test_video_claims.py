@@ -65,3 +65,23 @@ def test_a_marker_the_camera_does_not_see_is_not_claimed(lateral):
     missing = (set(scene.carm_from_marker) - {m.marker_id for m in det.markers}).pop()
     unseen = replace(video, markers=tuple(m for m in video.markers if m.marker_id != missing))
     assert {p.marker_id for p in claim_from_video(unseen, poses, scene.marker_set)} == {m.marker_id for m in det.markers}
+
+
+def test_register_cli_single_lateral_view_with_an_edge_on_marker(tmp_path):
+    """drillnav sim scene -> drillnav register through real files: the single-view pre-check no longer refuses."""
+    import json
+
+    from drillnav.service.cli import main
+
+    d = tmp_path / "scene"
+    assert main(["sim", "scene", "--seed", "40", "--markers", "3", "--views", "lateral", "--out", str(d)]) == 0
+    out = tmp_path / "result.json"
+    assert main(["register", "--markers", str(d / "markers.json"), "--camera", str(d / "camera.json"), "--drill", str(d / "drill.json"),
+                 "--video", str(d / "camera.png"), "--fluoro", str(d / "fluoro" / "lateral.dcm"), "--out", str(out)]) == 0
+    r, t = json.loads(out.read_text()), json.loads((d / "truth.json").read_text())
+    assert len(r["views"][0]["markers_identified"]) == 2  # the third is edge-on
+    p, u = np.array(r["drill_axis_carm"]["point_mm"]), np.array(r["drill_axis_carm"]["direction"])
+    tp, tu = np.array(t["drill_axis_carm"]["point_mm"]), np.array(t["drill_axis_carm"]["direction"])
+    e = np.array(t["corridor_entry_carm_mm"])
+    assert np.linalg.norm((p + np.dot(e - p, u) * u) - (tp + np.dot(e - tp, tu) * tu)) < 2.5
+    assert np.degrees(np.arccos(np.clip(abs(u @ tu), -1.0, 1.0))) < 1.0
