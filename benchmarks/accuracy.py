@@ -22,6 +22,7 @@ import pickle
 import sys
 import time
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -109,7 +110,9 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                 for m in ms:
                     for subset in itertools.combinations(sorted(scene.carm_from_marker), m):
                         chosen = tuple(p for p in marker_poses if p.marker_id in subset)
-                        for carm_from_drill, video in frames:
+                        for carm_from_drill, seen in frames:
+                            # M markers placed: the camera sees only those (else it would claim the others' BBs).
+                            video = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
                             for method in methods:
                                 key = (pair, len(vs), m, method)
                                 tried[key] += 1

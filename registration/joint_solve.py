@@ -37,9 +37,16 @@ from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
-__all__ = ["JointSolution", "joint_solve", "perturb_about"]
+__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX"]
 
 N_INTRINSICS = 3  # focal scale (relative), cx, cy (px)
+# The camera model's uncertainty (1 sigma) held by the prior: focal length (relative, fx and fy together) and
+# principal point per axis. A calibration states about 0.2 % / 0.8 px (the twin's draws), but its distortion
+# error is not a parameter here and shows up through these: at 0.2 % / 0.8 px the single-view position bound
+# covered 38 % (AP+lateral) and 75 % (random) of the twin's errors, at 0.3 % / 1.5 px 75 % and 100 %
+# (seeds 7500-7503, M = 5, 8 registrations each).
+FOCAL_REL_SIGMA = 0.003
+PRINCIPAL_SIGMA_PX = 1.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -49,8 +56,9 @@ class JointSolution:
     carm_from_drill : (4, 4).
     carm_from_marker : {marker id: (4, 4)} of the markers used.
     covariance_drill : (6, 6) covariance of the drill perturbation (rotation vector rad, translation mm) about
-        ``pivot_carm_mm`` (see :func:`perturb_about`), marginal over the markers and intrinsics, scaled by the
-        fit's reduced chi-square (the noise models give its shape, the residuals its size).
+        ``pivot_carm_mm`` (see :func:`perturb_about`), marginal over the markers and intrinsics; the BBs' and
+        the corners' noise are each re-estimated from their own residuals (variance components), the
+        intrinsics' prior keeps its stated size.
     marker_chi : {marker id: RMS normalised residual} (about 1 for a marker that fits its noise model).
     """
 
@@ -65,6 +73,7 @@ class JointSolution:
     corner_rms_px: float
     reduced_chi2: float
     converged: bool
+    chi2: float = float("nan")  # sum of the squared normalised residuals
 
 
 def perturb_about(delta: NDArray[np.float64], target_from_source: NDArray[np.float64], pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -95,8 +104,8 @@ def joint_solve(
     carm_from_marker0: dict[int, NDArray[np.float64]],
     fluoro_sigma_px: float = 0.35,
     corner_sigma_px: float = 0.3,
-    focal_rel_sigma: float = 0.003,
-    principal_sigma_px: float = 1.5,
+    focal_rel_sigma: float = FOCAL_REL_SIGMA,
+    principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
     outlier_chi: float = 4.0,
     bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
@@ -150,6 +159,25 @@ def joint_solve(
     # The final fit is plain least squares: its Jacobian gives the covariance.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
+
+
+def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[slice, ...], *, min_scale: float = 0.5,
+                  min_dof: float = 4.0) -> NDArray[np.float64]:
+    """Per-row factor (R,) by which each group's assumed noise is off: sqrt(chi-square / redundancy) of the group.
+
+    Variance components: a group's redundancy is the sum of its rows' 1 - leverage (its share of the fit's
+    degrees of freedom). Rows outside the groups (priors) keep 1; a group with less than ``min_dof`` of
+    redundancy keeps 1 (too few to estimate); the factor is at least ``min_scale`` (a few residuals that
+    happen to be small must not shrink the bound to nothing).
+    """
+    scales = np.ones(len(res))
+    cov0 = np.linalg.pinv(jac.T @ jac)
+    leverage = np.einsum("ij,jk,ik->i", jac, cov0, jac)
+    for g in groups:
+        dof = float(np.sum(1.0 - leverage[g]))
+        if dof >= min_dof:
+            scales[g] = max(min_scale, float(np.sqrt(np.sum(res[g] ** 2) / dof)))
+    return scales
 
 
 def _trim(observations, carm_from_marker, max_px: float) -> tuple:
@@ -253,7 +281,11 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     dof = max(1, len(res) - n_par)
     red = float(np.sum(res**2) / dof)
     jac = np.asarray(sol.jac)
-    cov = np.linalg.pinv(jac.T @ jac) * red
+    # Each group's noise (BBs, corners) from its own residuals, not one reduced chi-square for all: a global
+    # factor would also scale the intrinsics' prior, whose size the residuals say nothing about.
+    w = 1.0 / _noise_scales(jac, res, (slice(0, n_f), slice(n_f, n_f + n_c)))
+    jw = jac * w[:, None]
+    cov = np.linalg.pinv(jw.T @ jw)
     return JointSolution(
         carm_from_drill=drill,
         carm_from_marker={i: make_transform(rot[k], t[k]) for k, i in enumerate(ids)},
@@ -265,5 +297,6 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         fluoro_rms_px=float(np.sqrt(np.mean(np.sum(rf**2, axis=1)))) * fluoro_sigma_px,
         corner_rms_px=float(np.sqrt(np.mean(np.sum(rc**2, axis=1)))) * corner_sigma_px,
         reduced_chi2=red,
+        chi2=float(np.sum(res**2)),
         converged=bool(sol.success),
     )

@@ -15,7 +15,7 @@ Each pose gets a residual (RMS px) and a convergence flag.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ from .fluoro_markers import FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
-__all__ = ["MarkerPose", "register_markers", "planar_candidates", "MIRROR_RATIO"]
+__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "MIRROR_RATIO"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -44,6 +44,10 @@ class MarkerPose:
     mirror_carm_from_marker: NDArray[np.float64] | None = None
     # (view, design BB centres (N, 3) mm, detected centres (N, 2) px) per view: the joint solve re-uses them.
     observations: tuple = ()
+    # (view, blob centres (N, 2) px) per view register_markers was given: the blobs no identified marker
+    # claimed there. A marker the camera sees but fluoroscopy did not identify (edge-on, ambiguous ring)
+    # claims its BBs among them by projection (:mod:`.video_claims`).
+    view_blobs: tuple = ()
 
     @property
     def position_carm_mm(self) -> NDArray[np.float64]:
@@ -148,20 +152,22 @@ def register_markers(
             per_marker.setdefault(m.marker_id, []).append((view, obj, img))
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
+    # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
+    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers if m.marker_id in per_marker for b in m.bbs} for det in detections]
+    free = [np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
+    view_blobs = tuple(zip(views, free))
     if len(views) < 2:
-        return tuple(poses)
+        return tuple(replace(p, view_blobs=view_blobs) for p in poses)
     # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)
     # claims its BBs there by projection from its pose, then is solved again over both views.
-    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers for b in m.bbs} for det in detections]
     out = []
     for pose in poses:
         seen = {id(o[0]) for o in pose.observations}
         extra = []
         for k, (det, view) in enumerate(zip(detections, views)):
-            if id(view) in seen or not det.blobs:
+            if id(view) in seen or not len(free[k]):
                 continue
-            free = np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2)
-            found = _claim(view, pose.carm_from_marker, marker_set.by_id(pose.marker_id).bb_centers_mm, free)
+            found = claim_bbs(view, pose.carm_from_marker, marker_set.by_id(pose.marker_id).bb_centers_mm, free[k])
             if found is not None:
                 extra.append((view, *found))
         if extra:
@@ -171,11 +177,11 @@ def register_markers(
                 again = pose
             if again.converged or not pose.converged:
                 pose = again
-        out.append(pose)
+        out.append(replace(pose, view_blobs=view_blobs))
     return tuple(out)
 
 
-def _claim(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3):
+def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3):
     """The design BBs (N, 3) and blob centres (N, 2) a pose explains in a view, after the best common shift.
 
     The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole

@@ -102,7 +102,8 @@ def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], c
     """
     if reg.covariance_drill is None or reg.pivot_carm_mm is None:
         return None
-    return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(poses, reg), covariance_drill=reg.covariance_drill,
+    # reg.marker_poses adds the markers claimed through the video (edge-on in fluoroscopy): the frames after it use them too
+    return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg), covariance_drill=reg.covariance_drill,
                            pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns)
 
 
@@ -164,6 +165,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers")
         poses = refinement.poses
+    poses = reg.marker_poses or poses  # with the markers claimed through the video (edge-on in fluoroscopy)
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
     work = axis.closest_point(centroid)

@@ -8,7 +8,9 @@
 3. PnP on every tag corner: the corners' 3D positions in C (from each
    registered marker pose and the design) against their sub-pixel image
    positions, so all markers constrain the camera pose together.
-4. When the marker poses carry their BB observations (``register_markers``
+4. With the joint solve, markers the camera sees claim their BBs in views where fluoroscopy did not identify
+   them (:mod:`.video_claims`: the camera's marker constellation fitted to the identified ones predicts them).
+   When the marker poses carry their BB observations (``register_markers``
    keeps them), one joint solve of all marker poses and ``carm_from_drill``
    over every BB and every tag corner (:mod:`.joint_solve`), with its
    covariance; ``joint=False`` stops after step 3 (the former pipeline).
@@ -28,13 +30,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
-from .errors import DegenerateInput, MarkersNotFound
+from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .joint_solve import joint_solve
+from .joint_solve import FOCAL_REL_SIGMA, JointSolution, joint_solve
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
+from .video_claims import claim_from_video
 from .video_markers import VideoDetections
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -77,6 +80,12 @@ class DrillRegistration:
     pivot_carm_mm: NDArray[np.float64] | None = None
     carm_from_marker: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     method: str = "horn+pnp"
+    # One view only: the constellation's mirror solution (4, 4) when it fits nearly as well (None: ruled out).
+    # predicted_axis_error's bounds then reach it, and the axis is flagged unreliable past the limits.
+    mirror_carm_from_drill: NDArray[np.float64] | None = None
+    # The marker poses registered: those given, with the BBs claimed through the video's identities
+    # (:mod:`.video_claims`) and the markers found that way; empty without the joint solve.
+    marker_poses: tuple = ()
 
 
 def register_video_to_fluoro(
@@ -92,8 +101,12 @@ def register_video_to_fluoro(
     """``carm_from_drill`` from the markers seen by the camera and localised in fluoroscopy.
 
     ``joint``: finish with the joint solve of every marker pose and the drill pose when the marker poses carry
-    their BB observations (the default); False keeps the former Horn + corner PnP pipeline.
+    their BB observations (the default); False keeps the former Horn + corner PnP pipeline. With the joint
+    solve, markers the camera sees claim their BBs where fluoroscopy did not identify them
+    (:func:`.video_claims.claim_from_video`), so an edge-on marker in a single view still counts.
     """
+    if joint:
+        marker_poses = claim_from_video(video, tuple(marker_poses), marker_set)
     every = {p.marker_id: p for p in marker_poses}
     poses = {i: p for i, p in every.items() if p.converged}
     vids = video.by_id()
@@ -142,19 +155,18 @@ def register_video_to_fluoro(
                 start = carm_from_drill @ vids[i].camera_from_tag
                 start[:3, 3] = every[i].position_carm_mm
                 carm_from_marker[i] = start
-        sol = joint_solve(
-            observations={i: every[i].observations for i in joinable},
-            corners_px={i: vids[i].corners_px for i in joinable},
-            marker_set=marker_set,
-            camera=camera,
-            carm_from_drill0=carm_from_drill,
-            carm_from_marker0=carm_from_marker,
-            min_markers=min_markers,
-        )
+        solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
+                     marker_set=marker_set, camera=camera, min_markers=min_markers)
+        sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
+        alternative = None
+        views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
+        if len(views) == 1:
+            sol, alternative = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
-        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint")
+        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
+                     mirror_carm_from_drill=alternative)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
@@ -168,6 +180,41 @@ def register_video_to_fluoro(
         carm_from_marker=carm_from_marker,
         **extra,
     )
+
+
+# A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
+# chi-square) is not ruled out by the data: about a 4-sigma difference in one direction.
+MIRROR_DELTA_CHI2 = 16.0
+
+
+def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None]:
+    """One view: the better of the joint solution and its mirror image, and the other one's ``carm_from_drill`` if it fits nearly as well.
+
+    The markers lie on the skin, nearly in one plane, and the camera ties the drill rigidly to them: in one
+    view the whole constellation has the planar ambiguity of a single marker (depth along the beam poorly
+    fixed), and its mirror pose tilts the drill by about twice the plane's tilt to the beam. The mirror start
+    reflects the constellation across the plane through its centroid perpendicular to the beam, then across
+    its own plane (together a proper rotation about their intersection).
+    """
+    centres = np.array([sol.carm_from_marker[i][:3, 3] for i in sol.used_ids])
+    centroid = centres.mean(axis=0)
+    normal = np.linalg.svd(centres - centroid)[2][2] if len(centres) >= 3 else sol.carm_from_marker[sol.used_ids[0]][:3, 2]
+    beam = centroid - view.source_position_mm
+    beam /= np.linalg.norm(beam)
+    rot = (np.eye(3) - 2.0 * np.outer(beam, beam)) @ (np.eye(3) - 2.0 * np.outer(normal, normal))
+    flip = make_transform(rot, centroid - rot @ centroid)
+    try:
+        alt = joint_solve(carm_from_drill0=flip @ sol.carm_from_drill, carm_from_marker0={i: flip @ t for i, t in sol.carm_from_marker.items()}, **solve)
+    except DrillnavError:
+        return sol, None
+    if set(alt.used_ids) != set(sol.used_ids):
+        return sol, None
+    best, other = (sol, alt) if sol.chi2 <= alt.chi2 else (alt, sol)
+    if Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
+        return best, None  # both starts reached the same solution
+    if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
+        return best, other.carm_from_drill
+    return best, None
 
 
 def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -199,7 +246,7 @@ def predicted_axis_error(
     fluoro_sigma_mm: float = 0.15,
     axis_sigma_mm: float = 0.1,
     axis_sigma_deg: float = 0.085,
-    focal_rel_sigma: float = 0.002,
+    focal_rel_sigma: float = FOCAL_REL_SIGMA,
     samples: int = 64,
     seed: int = 0,
     position_limit_mm: float = RELIABLE_POSITION_MM,
@@ -209,7 +256,7 @@ def predicted_axis_error(
 
     With a joint solve (``registration.covariance_drill``): draws of the drill
     pose from its covariance (which already carries the camera's calibration
-    uncertainty and is scaled by the fit's reduced chi-square), with the
+    uncertainty and the BBs' and corners' noise as their residuals show it), with the
     calibrated drill axis drawn from its own uncertainty (drill.json).
     Without: draws of the video X_D from their covariances with a common
     focal-length scale error, the fluoroscopy X_C with ``fluoro_sigma_mm``,
@@ -262,6 +309,12 @@ def predicted_axis_error(
     ang = np.degrees(np.arccos(np.clip(direction_c @ axis_c.direction, -1.0, 1.0)))
     p90, p95 = (float(v) for v in np.percentile(pos, [90, 95]))
     a90, a95 = (float(v) for v in np.percentile(ang, [90, 95]))
+    if registration.mirror_carm_from_drill is not None:
+        # The data do not rule out the mirror solution: the bounds reach the axis it gives.
+        alt = axis_drill.transformed(registration.mirror_carm_from_drill)
+        alt_pos = float(np.linalg.norm(alt.closest_point(ref) - ref))
+        alt_ang = alt.angle_deg(axis_c)
+        p90, p95, a90, a95 = max(p90, alt_pos), max(p95, alt_pos), max(a90, alt_ang), max(a95, alt_ang)
     return PredictedError(
         position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95, position90_mm=p90, angle90_deg=a90,
         reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg),

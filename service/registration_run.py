@@ -50,8 +50,8 @@ def run_registration(args: argparse.Namespace) -> dict:
     detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1]) for img in images]
     timings["fluoro_features_s"] = time.perf_counter() - t
     for img, det in zip(images, detections):
-        if len(det.markers) < 3 and len(images) == 1:
-            raise MarkersNotFound(f"{Path(img.source_file).name}: only {len(det.markers)} marker(s) identified in the single view; at least 3 are needed" + "".join(f"; {r.reason}" for r in det.rejected))
+        if not det.markers and len(images) == 1:  # one is enough: the camera's markers claim the others' BBs (video_claims)
+            raise MarkersNotFound(f"{Path(img.source_file).name}: no marker identified in the single view; at least 1 is needed" + "".join(f"; {r.reason}" for r in det.rejected))
     seen = {m.marker_id for d in detections for m in d.markers}
     if not seen & set(marker_set.ids):
         raise MarkersNotFound(f"none of the marker set's ids {sorted(marker_set.ids)} is identified in the fluoroscopy views")

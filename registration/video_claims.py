@@ -1,0 +1,152 @@
+"""Identity from the video: markers the camera sees claim their BBs in views where fluoroscopy did not identify them.
+
+A marker seen edge-on (lateral views: markers lie on the anterior skin), or
+whose ring is ambiguous, is not identified from its X-ray pattern alone, and
+with one view fewer than three markers may remain. The camera sees every tag
+with its identity and its pose in the drill frame D, so the markers the camera
+sees form one rigid constellation in D. Fitted to the BBs of the markers that
+fluoroscopy did identify (one is enough: six unknowns, four or more BBs each),
+the constellation predicts every other marker's BBs in every view; the free
+blobs there that match a marker's predicted pattern (after a small common
+shift, which absorbs the depth error along the beam) become that marker's
+observations, and the joint solve takes it like any other.
+
+Pure math: numpy and scipy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from .marker_pose import MarkerPose, claim_bbs
+from .markers import MarkerSet
+from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
+from .video_markers import VideoDetections
+
+__all__ = ["drill_from_marker", "fit_constellation", "claim_from_video"]
+
+# After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
+# the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
+SEARCH_PX = 30.0
+# Each BB within this of its shifted prediction: low-dose BB centres scatter by 1-3 px (measured on the
+# degraded twin), where the cross-view claim's 2.5 px lost markers; 3 BBs on one common shift within a
+# 30 px search still do not happen by chance among a view's few dozen blobs.
+TOL_PX = 3.5
+
+
+def drill_from_marker(camera_from_tag: NDArray[np.float64], tag_center_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The marker frame (4, 4) in frame D from the tag's pose: the tag sits at ``tag_center_mm`` in the marker frame."""
+    return np.asarray(camera_from_tag, dtype=np.float64) @ make_transform(np.eye(3), -np.asarray(tag_center_mm, dtype=np.float64))
+
+
+def fit_constellation(anchors: dict[int, tuple], drill_from_marker_: dict[int, NDArray[np.float64]],
+                      starts: list[NDArray[np.float64]]) -> tuple[NDArray[np.float64], float]:
+    """``carm_from_drill`` (4, 4) and the RMS BB residual (px) of the camera's marker constellation fitted to fluoroscopy.
+
+    anchors : {marker id: ((CArmView, design BB centres (N, 3) mm, detected centres (N, 2) px), ...)}.
+    drill_from_marker_ : {marker id: (4, 4)} from the camera.
+    starts : candidate ``carm_from_drill`` (4, 4); the best fit over all of them wins (a single marker's
+        planar pose has a mirror solution, so both are tried).
+    """
+    pts, img, proj = [], [], []
+    for i, obs in anchors.items():
+        for view, obj, px in obs:
+            pts.append(apply(drill_from_marker_[i], obj))
+            img.append(np.asarray(px, dtype=np.float64))
+            proj.append(np.repeat(view.projection_matrix[None], len(obj), axis=0))
+    pts_d, img_a, proj_a = np.concatenate(pts), np.concatenate(img), np.concatenate(proj)
+
+    def residual(x):
+        t = from_rotvec(x[:3], x[3:])
+        pc = pts_d @ t[:3, :3].T + t[:3, 3]
+        h = np.einsum("nij,nj->ni", proj_a[:, :, :3], pc) + proj_a[:, :, 3]
+        return (h[:, :2] / h[:, 2:3] - img_a).ravel()
+
+    def rms(x):
+        r = residual(x).reshape(-1, 2)
+        return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+    # Refine only the two starts that fit best as they are (the right one and its mirror, typically).
+    xs = [np.concatenate(to_rotvec(start)) for start in starts]
+    xs = sorted(xs, key=rms)[:2]
+    best = None
+    for x0 in xs:
+        # Soft L1 beyond 2 px: one anchor identified wrongly must not drag the constellation.
+        sol = least_squares(residual, x0, loss="soft_l1", f_scale=2.0, max_nfev=100)
+        fit = rms(sol.x)
+        if best is None or fit < best[1]:
+            best = (from_rotvec(sol.x[:3], sol.x[3:]), fit)
+    return best
+
+
+def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...], marker_set: MarkerSet, *,
+                     max_fit_px: float = 8.0, min_bbs: int = 3) -> tuple[MarkerPose, ...]:
+    """``marker_poses`` with the BBs the camera's markers claim in views where fluoroscopy did not identify them.
+
+    A marker that fluoroscopy did not identify anywhere is added as a new (not converged) :class:`MarkerPose`
+    at its predicted pose, with the claimed BBs as its observations; an identified marker gains the views it
+    was missing. Only markers the camera sees and ``marker_set`` holds are claimed; ``marker_poses`` are
+    returned as they are when they carry no blobs (``view_blobs``), when no marker the camera sees was
+    identified, or when the constellation does not fit fluoroscopy within ``max_fit_px`` (RMS).
+    """
+    vids = video.by_id()
+    views = {}
+    for p in marker_poses:
+        for view, blobs in p.view_blobs:
+            views.setdefault(id(view), (view, blobs))
+    by_id = {p.marker_id: p for p in marker_poses}
+    in_set = set(marker_set.ids)
+    anchors = {i: p.observations for i, p in by_id.items() if i in vids and p.observations}
+    if not views or not anchors:
+        return marker_poses
+    d_from_m = {i: drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm) for i in vids if i in in_set}
+    # Nothing to claim when every marker the camera sees is observed in every view (the usual live case).
+    if all(i in by_id and {id(o[0]) for o in by_id[i].observations} >= set(views) for i in d_from_m):
+        return marker_poses
+    starts = []
+    for i in anchors:
+        p = by_id[i]
+        for carm_from_marker in (p.carm_from_marker, p.mirror_carm_from_marker):
+            if carm_from_marker is not None:
+                starts.append(carm_from_marker @ invert(d_from_m[i]))
+    carm_from_drill, rms = fit_constellation(anchors, d_from_m, starts)
+    if rms > max_fit_px:
+        return marker_poses
+    # Each view's free blobs are handed out greedily, the marker that explains most BBs first, so that
+    # two predicted markers never share a blob.
+    free = {k: np.asarray(b, dtype=np.float64).reshape(-1, 2) for k, (_, b) in views.items()}
+    claims: dict[int, list] = {}
+    while True:
+        best = None
+        for i in sorted(d_from_m):
+            seen = {id(o[0]) for o in by_id[i].observations} if i in by_id else set()
+            seen |= {id(c[0]) for c in claims.get(i, [])}
+            pose = carm_from_drill @ d_from_m[i]
+            for k, (view, _) in views.items():
+                if k in seen or len(free[k]) < min_bbs:
+                    continue
+                found = claim_bbs(view, pose, marker_set.by_id(i).bb_centers_mm, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
+                if found is not None and (best is None or len(found[0]) > len(best[3])):
+                    best = (i, k, view, *found)
+        if best is None:
+            break
+        i, k, view, obj, img = best
+        claims.setdefault(i, []).append((view, obj, img))
+        taken = np.any(np.all(np.isclose(free[k][:, None, :], img[None, :, :]), axis=2), axis=1)
+        free[k] = free[k][~taken]
+    if not claims:
+        return marker_poses
+    out = []
+    for p in marker_poses:
+        extra = claims.pop(p.marker_id, [])
+        out.append(replace(p, observations=tuple(p.observations) + tuple(extra), n_views=p.n_views + len(extra),
+                           n_points=p.n_points + sum(len(o[1]) for o in extra)) if extra else p)
+    for i, extra in sorted(claims.items()):
+        out.append(MarkerPose(marker_id=i, carm_from_marker=carm_from_drill @ d_from_m[i], residual_px=float("nan"),
+                              n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,
+                              observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs))
+    return tuple(out)
