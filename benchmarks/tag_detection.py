@@ -92,7 +92,8 @@ def false_ids_without_tags(*, seeds: int = 3, first_seed: int = 3000) -> int:
         away = pose.copy()
         away[:3, 3] += 5000.0 * pose[:3, 2]  # far past the markers: every tag behind the camera or out of frame
         frame = scene.render_camera(rng, carm_from_drill=away)
-        count += len(locator.locate(frame).markers) + len(locator.locate(frame).ignored_ids)
+        det = locator.locate(frame)
+        count += len(det.markers) + len(det.ignored_ids)
     return count
 
 
