@@ -1,0 +1,119 @@
+"""Share of visible tags the drill camera's detector finds, per operating-room degradation (issue 17).
+
+For each seed and drill pose the twin renders one frame per camera degradation
+(each alone, then all, then none), and ``VideoMarkerLocator`` looks for the
+scene's tags. A tag counts as visible when its four true corners project inside
+the frame (a glove over a corner still counts: a tag the detector cannot decode
+is a miss, not an excuse). Also measured: false ids (ids found that are not in
+the scene, or not visible), the RMS corner error of found tags against the true
+projection, and the locator's time per frame. Tag-free frames (the drape only,
+every degradation) are checked for false ids too.
+
+    .venv/bin/python benchmarks/tag_detection.py --seeds 3 --poses 4
+
+Prints a table and one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from drillnav.drivers.sim.degradations import CAMERA, Degradations
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.transforms import apply
+from drillnav.registration.video_markers import VideoMarkerLocator
+
+
+def _true_corners(scene, carm_from_drill) -> dict[int, np.ndarray]:
+    """Marker id -> (4, 2) true tag corners (OpenCV order) for the tags fully inside the frame."""
+    cam = scene.true_camera
+    out = {}
+    for marker_id, pose in scene.camera_from_marker(carm_from_drill).items():
+        pts = apply(pose, scene.manufactured[marker_id].tag_corners_mm())
+        if np.any(pts[:, 2] <= 1.0):
+            continue
+        px = cam.project(pts)
+        if np.all((px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)):
+            out[marker_id] = px
+    return out
+
+
+def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, conditions: list[str] | None = None) -> dict[str, dict]:
+    """condition -> {visible, found, false_ids, corner_rms_px, ms_per_frame} summed over seeds x poses."""
+    conditions = conditions if conditions is not None else ["none", *CAMERA, "all"]
+    rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0} for c in conditions}
+    for seed in range(first_seed, first_seed + seeds):
+        for cond in conditions:
+            # "all": every camera degradation (the fluoroscopy ones do not touch the camera frame).
+            deg = Degradations.parse(",".join(CAMERA) if cond == "all" else cond)
+            scene = make_scene(seed=seed, render=False, degradations=deg)
+            locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+            pose_rng, camera_rng = np.random.default_rng([seed, 2]), np.random.default_rng([seed, 3])
+            for _ in range(poses):
+                pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
+                frame = scene.render_camera(camera_rng, carm_from_drill=pose)
+                truth = _true_corners(scene, pose)
+                t0 = time.perf_counter()
+                det = locator.locate(frame)
+                r = rows[cond]
+                r["seconds"] += time.perf_counter() - t0
+                r["frames"] += 1
+                r["visible"] += len(truth)
+                for m in det.markers:
+                    if m.marker_id not in truth:
+                        r["false_ids"] += 1
+                        continue
+                    r["found"] += 1
+                    r["sq_err"] += float(np.sum((m.corners_px - truth[m.marker_id]) ** 2))
+                    r["n_corners"] += 4
+                r["false_ids"] += len(det.ignored_ids)
+    out = {}
+    for c, r in rows.items():
+        out[c] = {
+            "visible": r["visible"], "found": r["found"], "found_share": r["found"] / max(r["visible"], 1),
+            "false_ids": r["false_ids"], "corner_rms_px": float(np.sqrt(r["sq_err"] / max(r["n_corners"], 1))),
+            "ms_per_frame": 1000.0 * r["seconds"] / max(r["frames"], 1),
+        }
+    return out
+
+
+def false_ids_without_tags(*, seeds: int = 3, first_seed: int = 3000) -> int:
+    """Ids found on frames with no tag at all (the drape, every camera degradation on)."""
+    count = 0
+    for seed in range(first_seed, first_seed + seeds):
+        scene = make_scene(seed=seed, render=False, degradations=Degradations.parse(",".join(CAMERA)))
+        locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=range(250))
+        rng = np.random.default_rng([seed, 4])
+        pose = scene.drill_pose_towards(rng)
+        away = pose.copy()
+        away[:3, 3] += 5000.0 * pose[:3, 2]  # far past the markers: every tag behind the camera or out of frame
+        frame = scene.render_camera(rng, carm_from_drill=away)
+        det = locator.locate(frame)
+        count += len(det.markers) + len(det.ignored_ids)
+    return count
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--poses", type=int, default=4)
+    ap.add_argument("--first-seed", type=int, default=3000)
+    args = ap.parse_args()
+    res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed)
+    print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8}")
+    for c, r in res.items():
+        print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f}")
+    empty = false_ids_without_tags(seeds=args.seeds, first_seed=args.first_seed)
+    print(f"false ids on {args.seeds} tag-free frames (every camera degradation): {empty}")
+    print(json.dumps({"seeds": args.seeds, "poses": args.poses, "first_seed": args.first_seed, "false_ids_tag_free_frames": empty,
+                      "per_condition": {c: {"found_share": round(r["found_share"], 4), "visible_tags": r["visible"], "found_tags": r["found"],
+                                            "false_ids": r["false_ids"], "corner_rms_px": round(r["corner_rms_px"], 4),
+                                            "locate_ms_per_frame": round(r["ms_per_frame"], 2)} for c, r in res.items()}}))
+
+
+if __name__ == "__main__":
+    main()
