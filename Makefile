@@ -6,11 +6,12 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: run test bench clean
 
+# Under a lock, and only if still stale once the lock is held: two `make test` started at once on one machine would
+# otherwise both build the same .venv/ and one would fail on the other's half-written files.
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
-	touch $(STAMP)
+	flock .venv.lock sh -c 'if [ ! $(STAMP) -nt pyproject.toml ]; then \
+	  $(PYTHON) -m venv $(VENV) && $(BIN)/python -m pip install -q --upgrade pip && \
+	  $(BIN)/python -m pip install -q -e ".[test]" && touch $(STAMP); fi'
 
 run: $(STAMP)
 	$(BIN)/drillnav serve --twin
