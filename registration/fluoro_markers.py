@@ -165,14 +165,34 @@ def detect_markers(
             continue
         bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
         markers.append(DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost))
-    ids = [m.marker_id for m in markers]
-    dup = {i for i in ids if ids.count(i) > 1}
-    if dup:
-        for m in [m for m in markers if m.marker_id in dup]:
-            rejected.append(RejectedRing(reason=f"marker id {m.marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
-        markers = [m for m in markers if m.marker_id not in dup]
+    markers, twice = _merge_split_rings(markers)
+    rejected += twice
     every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False) for c, d in blobs)
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMarker], list[RejectedRing]]:
+    """One detection per id: the pieces of one ring, each identified alike, kept once; two rings with one id rejected.
+
+    Metal crossing a ring (a clamp's jaw, a K-wire) cuts its wire into arcs, each fitted and identified on
+    its own from the same BBs. Pieces that share at least 3 BB centres are one marker: the best-fitting
+    identification is kept. Two detections of one id on different BBs are two rings claiming one identity,
+    which is not guessed.
+    """
+    by_id: dict[int, list[DetectedMarker]] = {}
+    for m in markers:
+        by_id.setdefault(m.marker_id, []).append(m)
+    kept: list[DetectedMarker] = []
+    rejected: list[RejectedRing] = []
+    for marker_id, found in by_id.items():
+        best = min(found, key=lambda m: m.identification_cost_mm)
+        own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
+        if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in found):
+            kept.append(best)
+            continue
+        for m in found:
+            rejected.append(RejectedRing(reason=f"marker id {marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
+    return kept, rejected
 
 
 def _arc_span_deg(points: NDArray[np.float32]) -> float:
