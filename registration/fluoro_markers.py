@@ -160,6 +160,21 @@ def detect_markers(
             if ident is None or candidate.cost < ident.cost:
                 ident = candidate
         if ident is None:
+            # A smaller blob than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under
+            # metal) makes every BB look large. The central BB is 2.0 mm too: each candidate calibrates the
+            # sizes itself, and identify's cost and margin still decide.
+            for c in order[:3]:
+                if np.linalg.norm(plane[c]) > 6.0:
+                    continue
+                own_mm = diam_px * (2.0 / diam_px[c])
+                try:
+                    candidate = identify(plane - plane[c], own_mm, marker_set)
+                except MarkerNotIdentified as exc:
+                    last_error = exc
+                    continue
+                if ident is None or candidate.cost < ident.cost:
+                    ident, diam_mm = candidate, own_mm
+        if ident is None:
             reason = str(last_error) if last_error else "no central BB found inside the ring"
             rejected.append(RejectedRing(reason=reason, center_px=np.array([cx, cy])))
             continue
