@@ -143,37 +143,28 @@ def detect_markers(
         scale = major / ring_r  # px per mm at the marker
         centers = np.array([b[0] for b in inside])
         diam_px = np.array([b[1] for b in inside])
-        # The smallest BB of every marker is 2.0 mm (the central one): it calibrates the size estimate.
-        diam_mm = diam_px * (2.0 / diam_px.min())
         plane = _rectify(centers, ellipse) / scale
         # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
         ident, last_error = None, None
         order = np.argsort(np.linalg.norm(plane, axis=1))
-        for c in order[:3]:
-            if diam_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
-                continue
-            try:
-                candidate = identify(plane - plane[c], diam_mm, marker_set)
-            except MarkerNotIdentified as exc:
-                last_error = exc
-                continue
-            if ident is None or candidate.cost < ident.cost:
-                ident = candidate
-        if ident is None:
-            # A smaller blob than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under
-            # metal) makes every BB look large. The central BB is 2.0 mm too: each candidate calibrates the
-            # sizes itself, and identify's cost and margin still decide.
+        # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
+        # blob smaller than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under metal)
+        # makes every BB look large: only then each candidate, as the 2.0 mm central BB, calibrates them
+        # itself; identify's cost and margin still decide.
+        for own_scale in (False, True):
             for c in order[:3]:
-                if np.linalg.norm(plane[c]) > 6.0:
+                sizes_mm = diam_px * (2.0 / (diam_px[c] if own_scale else diam_px.min()))
+                if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
                     continue
-                own_mm = diam_px * (2.0 / diam_px[c])
                 try:
-                    candidate = identify(plane - plane[c], own_mm, marker_set)
+                    candidate = identify(plane - plane[c], sizes_mm, marker_set)
                 except MarkerNotIdentified as exc:
                     last_error = exc
                     continue
                 if ident is None or candidate.cost < ident.cost:
-                    ident, diam_mm = candidate, own_mm
+                    ident, diam_mm = candidate, sizes_mm
+            if ident is not None:
+                break
         if ident is None:
             reason = str(last_error) if last_error else "no central BB found inside the ring"
             rejected.append(RejectedRing(reason=reason, center_px=np.array([cx, cy])))
