@@ -143,36 +143,62 @@ def detect_markers(
         scale = major / ring_r  # px per mm at the marker
         centers = np.array([b[0] for b in inside])
         diam_px = np.array([b[1] for b in inside])
-        # The smallest BB of every marker is 2.0 mm (the central one): it calibrates the size estimate.
-        diam_mm = diam_px * (2.0 / diam_px.min())
         plane = _rectify(centers, ellipse) / scale
         # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
         ident, last_error = None, None
         order = np.argsort(np.linalg.norm(plane, axis=1))
-        for c in order[:3]:
-            if diam_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
-                continue
-            try:
-                candidate = identify(plane - plane[c], diam_mm, marker_set)
-            except MarkerNotIdentified as exc:
-                last_error = exc
-                continue
-            if ident is None or candidate.cost < ident.cost:
-                ident = candidate
+        # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
+        # blob smaller than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under metal)
+        # makes every BB look large: only then each candidate, as the 2.0 mm central BB, calibrates them
+        # itself; identify's cost and margin still decide.
+        for own_scale in (False, True):
+            for c in order[:3]:
+                sizes_mm = diam_px * (2.0 / (diam_px[c] if own_scale else diam_px.min()))
+                if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
+                    continue
+                try:
+                    candidate = identify(plane - plane[c], sizes_mm, marker_set)
+                except MarkerNotIdentified as exc:
+                    last_error = exc
+                    continue
+                if ident is None or candidate.cost < ident.cost:
+                    ident, diam_mm = candidate, sizes_mm
+            if ident is not None:
+                break
         if ident is None:
             reason = str(last_error) if last_error else "no central BB found inside the ring"
             rejected.append(RejectedRing(reason=reason, center_px=np.array([cx, cy])))
             continue
         bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
         markers.append(DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost))
-    ids = [m.marker_id for m in markers]
-    dup = {i for i in ids if ids.count(i) > 1}
-    if dup:
-        for m in [m for m in markers if m.marker_id in dup]:
-            rejected.append(RejectedRing(reason=f"marker id {m.marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
-        markers = [m for m in markers if m.marker_id not in dup]
+    markers, twice = _merge_split_rings(markers)
+    rejected += twice
     every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False) for c, d in blobs)
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMarker], list[RejectedRing]]:
+    """One detection per id: the pieces of one ring, each identified alike, kept once; two rings with one id rejected.
+
+    Metal crossing a ring (a clamp's jaw, a K-wire) cuts its wire into arcs, each fitted and identified on
+    its own from the same BBs. Pieces that share at least 3 BB centres are one marker: the best-fitting
+    identification is kept. Two detections of one id on different BBs are two rings claiming one identity,
+    which is not guessed.
+    """
+    by_id: dict[int, list[DetectedMarker]] = {}
+    for m in markers:
+        by_id.setdefault(m.marker_id, []).append(m)
+    kept: list[DetectedMarker] = []
+    rejected: list[RejectedRing] = []
+    for marker_id, found in by_id.items():
+        best = min(found, key=lambda m: m.identification_cost_mm)
+        own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
+        if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in found):
+            kept.append(best)
+            continue
+        for m in found:
+            rejected.append(RejectedRing(reason=f"marker id {marker_id} found twice", center_px=np.array(m.ring_ellipse[0])))
+    return kept, rejected
 
 
 def _arc_span_deg(points: NDArray[np.float32]) -> float:

@@ -153,7 +153,10 @@ def register_markers(
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
-    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers if m.marker_id in per_marker for b in m.bbs} for det in detections]
+    # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
+    # leaves them free, for the video's identities to claim.
+    solved = {p.marker_id for p in poses}
+    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers if m.marker_id in solved for b in m.bbs} for det in detections]
     free = [np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
     view_blobs = tuple(zip(views, free))
     if len(views) < 2:
