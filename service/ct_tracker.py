@@ -143,8 +143,9 @@ class CtTracker:
         assert self._conn is not None
         try:
             self._conn.send((shots, start, search_mm))
-        except OSError as exc:  # the worker went between the check and the send
-            raise DrillnavError(f"the CT registration worker is gone ({exc}); it restarts with the next shot") from None
+        except OSError:  # the worker went between the check and the send: the same death, said the same way
+            self._worker.join(timeout=5)
+            raise DrillnavError(f"the CT registration worker died (exit code {self._worker.exitcode}); it restarts with the next shot") from None
         while not self._conn.poll(0.2):
             if self._stop.is_set():
                 raise _WorkerStopped

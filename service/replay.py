@@ -33,6 +33,8 @@ from drillnav.schemas.topics import TOPICS
 
 from .recorder import FILE_METADATA
 
+_BLOCK, _DROP = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
+
 __all__ = ["RecordingUnreadable", "RecordedMessage", "RecordingReader", "ReplayResult", "iter_recording", "read_calibration", "replay", "replay_node"]
 
 # What a stream cut short, or damaged past some point, raises from the reader.
@@ -160,6 +162,8 @@ def replay(path: str | Path, session: zenoh.Session, *, rate: float = 1.0, stop:
         delay = start_wall + (m.log_time_ns - start_log) / 1e9 / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-        session.put(m.topic, m.data)
+        # Shots, calibrations and state are megabytes or once-only: blocked, never dropped, when the link is busy
+        # (zenoh's default for a put drops it); camera frames keep the live stream's drop-the-stale rule.
+        session.put(m.topic, m.data, congestion_control=_DROP if m.topic.endswith("camera/image") else _BLOCK)
         n += 1
     return ReplayResult(messages=n, cut=reader.cut)
