@@ -23,15 +23,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
 
-from drillnav.drivers.sim.scene import make_scene
-from drillnav.registration.fluoro_markers import detect_markers
-from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.pipeline import LiveCalibration, track_frame
-from drillnav.schemas import messages as msg
-from drillnav.service.joint_worker import JointSolveWorker
-from drillnav.service.replay import iter_recording
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from twin_replay import recorded_live_inputs  # noqa: E402  (the tests' own reading of the reference recording)
 
-RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
+from drillnav.registration.pipeline import track_frame
+from drillnav.service.joint_worker import JointSolveWorker
+
 PERIOD_NS = 33_333_333
 
 
@@ -51,13 +48,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=600, help="frames per mode (30 per second of capture time)")
     args = ap.parse_args()
-    scene = make_scene(seed=21, render=False)
-    rec = list(iter_recording(RECORDING))
-    shots = [msg.FluoroShot.from_bytes(d) for t, _, d in rec if t.endswith("fluoro/shot")]
-    dets = [detect_markers(s.image_log, scene.marker_set, pixel_spacing_mm=s.carm_view.pixel_spacing_mm[1]) for s in shots]
-    poses = tuple(register_markers(dets, [s.carm_view for s in shots], scene.marker_set))
-    cal = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
-    frames = [msg.decode_compressed_image(d)[0] for t, _, d in rec if t.endswith("camera/image")]
+    scene, poses, cal, frames = recorded_live_inputs()
 
     carried = {"ref": None}
 

@@ -324,11 +324,12 @@ def test_names_can_be_bound_to_a_network_interface(site, interfaces, arrives):
     assert (b"frame" in inbox.payloads()) is arrives
 
 
+_ANY = free_port()  # is_loopback reads the host only and never binds: any port the OS hands out will do
 @pytest.mark.parametrize("endpoint, loopback", [
-    ("tcp/127.0.0.1:7447", True), ("tls/127.0.0.2:7447", True), ("tcp/[::1]:7447", True), ("tcp/localhost:7447", True),
-    ("unixsock-stream//run/drillnav.sock", True), ("tcp/127.0.0.1:7447?iface=lo", True),
-    ("tcp/0.0.0.0:7447", False), ("tcp/[::]:7447", False), ("tls/navcart.local:7447", False),
-    ("tcp/192.168.1.20:7447", False), ("serial//dev/ttyUSB0", False),
+    (f"tcp/127.0.0.1:{_ANY}", True), (f"tls/127.0.0.2:{_ANY}", True), (f"tcp/[::1]:{_ANY}", True), (f"tcp/localhost:{_ANY}", True),
+    ("unixsock-stream//run/drillnav.sock", True), (f"tcp/127.0.0.1:{_ANY}?iface=lo", True),
+    (f"tcp/0.0.0.0:{_ANY}", False), (f"tcp/[::]:{_ANY}", False), (f"tls/navcart.local:{_ANY}", False),
+    (f"tcp/192.168.1.20:{_ANY}", False), ("serial//dev/ttyUSB0", False),
 ])
 def test_what_counts_as_loopback(endpoint, loopback):
     assert is_loopback(endpoint) is loopback

@@ -1,31 +1,18 @@
 """The live pipeline's joint refinement: the joint solve at most every JOINT_PERIOD_NS, the frames between on its refined markers."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from drillnav.drivers.sim.scene import make_scene
-from drillnav.registration.fluoro_markers import detect_markers
-from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import JOINT_PERIOD_NS, LiveCalibration, track_frame
-from drillnav.schemas import messages as msg
 from drillnav.service.joint_worker import JointSolveWorker
-from drillnav.service.replay import iter_recording
+from twin_replay import recorded_live_inputs
 
-RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 
 
 @pytest.fixture(scope="module")
 def live():
-    scene = make_scene(seed=21, render=False)
-    rec = list(iter_recording(RECORDING))
-    shots = [msg.FluoroShot.from_bytes(d) for t, _, d in rec if t.endswith("fluoro/shot")]
-    dets = [detect_markers(s.image_log, scene.marker_set, pixel_spacing_mm=s.carm_view.pixel_spacing_mm[1]) for s in shots]
-    poses = tuple(register_markers(dets, [s.carm_view for s in shots], scene.marker_set))
-    cal = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
-    frames = [msg.decode_compressed_image(d)[0] for t, _, d in rec if t.endswith("camera/image")]
-    return scene, poses, cal, frames
+    return recorded_live_inputs()
 
 
 def test_frames_between_joint_solves_use_its_refined_markers_and_agree_with_it(live):

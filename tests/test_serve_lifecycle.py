@@ -137,7 +137,7 @@ def _port_of(cfg: Path, what: str) -> int:
     return {"api": s.api.port, "dicom": s.dicom.scp_port, "zenoh": int(s.zenoh.listen[0].rsplit(":", 1)[1])}[what]
 
 
-NOT_A_TCP_PORT = 65536  # one past the last TCP port: the settings refuse it, so nothing ever binds it
+NOT_A_TCP_PORT = 1 << 16  # one past the last TCP port: the settings refuse it, so nothing ever binds it
 
 FAILURES = {
     # name: (sections, port to hold taken, words the one line must hold)

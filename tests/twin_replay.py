@@ -48,3 +48,21 @@ def play_at_camera_rate(player, node, fps=30.0):
     for p in publishers.values():
         p.undeclare()
     return len(frames)
+
+
+def recorded_live_inputs():
+    """What the live pipeline works from in the reference recording: (scene, marker poses, calibration, camera frames)."""
+    from drillnav.drivers.sim.scene import make_scene
+    from drillnav.registration.fluoro_markers import detect_markers
+    from drillnav.registration.marker_pose import register_markers
+    from drillnav.registration.pipeline import LiveCalibration
+    from drillnav.schemas import messages as msg
+
+    scene = make_scene(seed=21, render=False)
+    rec = list(iter_recording(RECORDING))
+    shots = [msg.FluoroShot.from_bytes(d) for t, _, d in rec if t.endswith("fluoro/shot")]
+    dets = [detect_markers(s.image_log, scene.marker_set, pixel_spacing_mm=s.carm_view.pixel_spacing_mm[1]) for s in shots]
+    poses = tuple(register_markers(dets, [s.carm_view for s in shots], scene.marker_set))
+    cal = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
+    frames = [msg.decode_compressed_image(d)[0] for t, _, d in rec if t.endswith("camera/image")]
+    return scene, poses, cal, frames
