@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from numpy.typing import NDArray
 from scipy import ndimage
 
 from drillnav.registration.ct_views import PlannedTrajectory
 from drillnav.registration.volume import Volume
+from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
 
 __all__ = ["DisplayHub", "DisplayClient", "CtVolumeForDisplay"]
@@ -229,8 +229,7 @@ class DisplayHub:
         self._send(f"event:{n}", text, keep=False)
 
     def _on_camera(self, sample: zenoh.Sample) -> None:
-        img = CompressedImage()
-        img.ParseFromString(sample.payload.to_bytes())
+        img = msg.parse_compressed_image(sample.payload.to_bytes())  # ValueError for garbage: counted by _guarded
         stamp = img.timestamp.seconds * 1_000_000_000 + img.timestamp.nanos
         now = time.monotonic_ns()
         with self._lock:
@@ -271,8 +270,7 @@ class DisplayHub:
 
     def _on_view_image(self, sample: zenoh.Sample) -> None:
         view = str(sample.key_expr).split("/")[-2]
-        img = CompressedImage()
-        img.ParseFromString(sample.payload.to_bytes())
+        img = msg.parse_compressed_image(sample.payload.to_bytes())
         stamp = img.timestamp.seconds * 1_000_000_000 + img.timestamp.nanos
         with self._lock:
             self._images[view] = (stamp, bytes(img.data))

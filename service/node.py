@@ -97,7 +97,10 @@ class RegistrationNode:
     def __init__(self, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet, calibration: LiveCalibration | None = None,
                  camera: PinholeCamera | None = None, axis_drill: Line3D | None = None, max_views: int = 2,
                  overlay_period_s: float = 0.5, ct_tracker=None, stall_s: float = 1.0, supervise_s: float = 0.25,
-                 reliable_limits: ReliableLimits = ReliableLimits()) -> None:
+                 reliable_limits: ReliableLimits = ReliableLimits(), camera_on_bus: bool = True) -> None:
+        """``camera_on_bus=False``: the camera is in this process and hands its frames to :meth:`take_frame`
+        (the daemon); True: frames come from the camera key on the bus (a camera elsewhere, a replay)."""
+        self.camera_on_bus = camera_on_bus
         if calibration is None and camera is not None and axis_drill is not None:
             calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set)
         # One of the two alone waits for the other (install_calibration).
@@ -143,7 +146,8 @@ class RegistrationNode:
             self._pub_events = stack.enter_context(s.declare_publisher(key(p, "events"), encoding=json_enc))
             self._pub_markers = stack.enter_context(s.declare_publisher(key(p, "fluoro_markers"), encoding=json_enc))
             self._pub_video = stack.enter_context(s.declare_publisher(key(p, "camera_markers"), encoding=json_enc))
-            stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
+            if self.camera_on_bus:
+                stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
             stack.enter_context(s.declare_subscriber(key(p, "fluoro_shot"), self._on_shot))
             stack.enter_context(self.joint)  # closed after the frame thread is joined (the stack unwinds in reverse)
             self._stop.clear()
@@ -198,12 +202,29 @@ class RegistrationNode:
         except Exception as exc:  # noqa: BLE001 - zenoh's callback thread must never see an exception
             self._loop_error("camera callback", exc)
             return
+        self._queue_frame(data)
+
+    def take_frame(self, image: np.ndarray, stamp_ns: int) -> None:
+        """A frame from a camera in this process, as captured: no JPEG encode and decode on the frame path.
+
+        image : (H, W) grayscale or (H, W, 3) BGR uint8; ``stamp_ns`` its capture stamp (wall clock, ns).
+        The bus still carries the frame (the camera loop publishes its JPEG after handing it here) for the
+        recorder and the display; a replay of that recording tracks the JPEG, within its compression of live.
+        """
+        if not (isinstance(image, np.ndarray) and image.dtype == np.uint8 and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3))):
+            shape = getattr(image, "shape", None)
+            self._refuse("camera_image", ValueError(f"camera frame: expected (H, W) or (H, W, 3) uint8 pixels, got {type(image).__name__} {shape}"))
+            return
+        self._queue_frame((image, int(stamp_ns)))
+
+    def _queue_frame(self, item: bytes | tuple[np.ndarray, int]) -> None:
+        """Only the newest frame waits: a frame still queued when the next arrives is dropped and counted."""
         self.counters.frames_received += 1
         self._last_frame_in_ns = time.monotonic_ns()
         with self._wake:
             if self._frame:
                 self.counters.frames_dropped += 1
-            self._frame.append(data)
+            self._frame.append(item)
             self._wake.notify_all()
 
     def _on_shot(self, sample: zenoh.Sample) -> None:
@@ -362,12 +383,15 @@ class RegistrationNode:
                 self._loop_error("frames", exc)
             self._last_frame_done_ns = time.monotonic_ns()
 
-    def _process_frame(self, data: bytes) -> None:
-        try:
-            image, stamp, _ = msg.decode_compressed_image(data)
-        except ValueError as exc:
-            self._refuse("camera_image", exc)
-            return
+    def _process_frame(self, data: bytes | tuple[np.ndarray, int]) -> None:
+        if isinstance(data, tuple):
+            image, stamp = data
+        else:
+            try:
+                image, stamp, _ = msg.decode_compressed_image(data)
+            except ValueError as exc:
+                self._refuse("camera_image", exc)
+                return
         self.counters.frames_processed += 1
         calibration, poses = self.calibration, self.poses  # one read each: a swap mid-frame does not mix calibrations
         if calibration is None or not poses:

@@ -17,3 +17,15 @@ def free_port() -> int:
 def free_endpoint() -> str:
     """A zenoh TCP endpoint on loopback at a free port."""
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+def wait_for(cond, timeout_s: float) -> bool:
+    """Poll ``cond()`` every 20 ms until it holds or ``timeout_s`` passes; its last value."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return bool(cond())

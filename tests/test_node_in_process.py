@@ -1,0 +1,89 @@
+"""A camera in the node's process hands it pixels (``take_frame``): each is tracked to the drill's axis, bad pixels are
+refused and counted, and the camera key on the bus is no longer the node's input (the daemon's own camera publishes
+there for the recorder and the display)."""
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.line import Line3D
+from drillnav.schemas import messages as msg
+from drillnav.schemas.topics import key
+from drillnav.service.bus import open_session
+from drillnav.service.node import RegistrationNode
+from drillnav.service.replay import iter_recording
+
+from conftest import free_endpoint, wait_for
+
+RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
+
+
+def register_both_views(pub, prefix, node, shots):
+    """Both recorded views registered (a shot put before the node's subscription reached the publisher is lost: put again)."""
+    for _ in range(10):
+        for s in shots:
+            pub.put(key(prefix, "fluoro_shot"), s)
+        if wait_for(lambda: len(node.status().views) == len(shots), 3):
+            return
+    raise AssertionError(f"the node did not register both views: {node.status()}")
+
+
+def test_frames_handed_in_process_are_tracked_and_bad_pixels_refused():
+    scene = make_scene(seed=21, render=False)
+    recorded = list(iter_recording(RECORDING))
+    shots = [data for topic, _, data in recorded if topic.endswith("fluoro/shot")]
+    jpegs = [data for topic, _, data in recorded if topic.endswith("camera/image")][:6]
+    truth = {(d := msg.decode_json(data))["frame_stamp_ns"]: Line3D(**d["drill_axis_carm"]) for topic, _, data in recorded if topic.endswith("twin/truth")}
+    ep = free_endpoint()
+    axes: list[dict] = []
+    events: list[dict] = []
+    lock = threading.Lock()
+
+    def on_sample(sample):
+        with lock:
+            if str(sample.key_expr).endswith("/axis/carm"):
+                axes.append(json.loads(sample.payload.to_bytes()))
+            elif str(sample.key_expr).endswith("/registration/events"):
+                events.append(json.loads(sample.payload.to_bytes()))
+
+    with open_session(listen=[ep]) as pub, open_session(connect=[ep]) as node_session:
+        sub = pub.declare_subscriber("drillnav/**", on_sample)
+        try:
+            with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
+                                  axis_drill=scene.calibrated_axis_drill, camera_on_bus=False) as node:
+                register_both_views(pub, "drillnav", node, shots)
+
+                # The camera key on the bus: not the node's input in this mode (a frame there is neither taken nor counted).
+                pub.put(key("drillnav", "camera_image"), jpegs[0])
+                time.sleep(0.3)
+                assert node.counters.frames_received == 0
+
+                # Pixels as a camera in this process hands them: every one tracked (paced, so none waits behind another).
+                decoded = [msg.decode_compressed_image(d) for d in jpegs]
+                for image, stamp, _ in decoded:
+                    node.take_frame(image, stamp)
+                    assert wait_for(lambda s=stamp: any(a["source_frame_stamp_ns"] == s for a in list(axes)), 10), node.status()
+                assert node.counters.frames_received == len(decoded)
+
+                # Each axis is the drill's: within the replay test's bounds of the recorded truth at the corridor entry.
+                entry = scene.corridor_entry_carm_mm
+                for _, stamp, _ in decoded:
+                    a = next(x for x in axes if x["source_frame_stamp_ns"] == stamp)
+                    est, true = Line3D(point_mm=a["point_mm"], direction=a["direction"]), truth[stamp]
+                    assert np.linalg.norm(est.closest_point(entry) - true.closest_point(entry)) < 2.0 and est.angle_deg(true) < 1.5
+
+                # Pixels that are not an image: refused, named, counted; the stream goes on.
+                before = node.counters.axes_published
+                node.take_frame(np.zeros((720, 1280), np.float32), 1)
+                node.take_frame("not an image", 2)
+                assert node.counters.bad_messages.get("drillnav/camera/image") == 2
+                image, stamp, _ = decoded[0]
+                node.take_frame(image, stamp + 10**9)
+                assert wait_for(lambda: node.counters.axes_published > before, 10)
+                assert wait_for(lambda: any("camera frame: expected" in e.get("message", "") for e in list(events)), 5), events
+        finally:
+            sub.undeclare()
