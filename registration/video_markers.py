@@ -244,7 +244,7 @@ class VideoMarkerLocator:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         best = int(np.argmin(np.asarray(errs).ravel()))
         rvec, tvec = cv2.solvePnPRefineLM(obj, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
-        rot, _ = cv2.Rodrigues(rvec)
+        rot, dr = cv2.Rodrigues(rvec)  # dr: dR/d(rvec), 3x9 (R row-major)
         camera_from_tag = make_transform(rot, tvec.ravel())
         bb_tag = spec.bb_tag_mm
         x_d = rot @ bb_tag + tvec.ravel()
@@ -253,8 +253,7 @@ class VideoMarkerLocator:
         # First-order covariance of the 6 pose parameters, pushed to X_D.
         j = jac[:, :6]
         cov_pose = np.linalg.pinv(j.T @ j) * self.corner_sigma_px**2
-        # dX_D/d(rvec) from Rodrigues' own Jacobian (dR/drvec, 3x9, R row-major), dX_D/dt = I.
-        _, dr = cv2.Rodrigues(rvec)
+        # dX_D/d(rvec) from Rodrigues' own Jacobian, dX_D/dt = I.
         jx = np.hstack([(dr.reshape(3, 3, 3) @ bb_tag).T, np.eye(3)])
         cov = jx @ cov_pose @ jx.T
         return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err)

@@ -192,7 +192,8 @@ class Daemon:
             scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
             marker_set = scene.marker_set
             self.camera_device = TwinDrillCamera(scene=scene, fps=s.camera.fps, seed=s.twin_scene.seed,
-                                                 unplug_every_s=s.twin_scene.camera_unplug_every_s, unplug_s=s.twin_scene.camera_unplug_s)
+                                                 unplug_every_s=s.twin_scene.camera_unplug_every_s, unplug_s=s.twin_scene.camera_unplug_s,
+                                                 aim_off_mm=s.twin_scene.aim_off_mm)
             send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
             self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
             self.progress("digital twin up")

@@ -176,6 +176,7 @@ class TwinSettings(_Section):
     # A soak's camera faults, on the daemon's own reconnection path (drivers/sim/devices.py TwinDrillCamera).
     camera_unplug_every_s: float | None = Field(None, gt=0, description="the twin camera's cable is pulled this long after it first opened, and every this long after; unset: never")
     camera_unplug_s: float = Field(3.0, gt=0, description="how long each scheduled unplug lasts (shorter than camera_unplug_every_s)")
+    aim_off_mm: float = Field(0.0, ge=0, le=40, description="the twin drill aims this far beside the planned corridor (a breach in the video-CT mode); 0: at it")
 
     @model_validator(mode="after")
     def _unplug_fits(self) -> "TwinSettings":

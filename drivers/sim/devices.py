@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
+from drillnav.drivers.sim import anatomy
 from drillnav.drivers.sim.dicom_io import write_xa
 from drillnav.drivers.sim.scene import PAPER_CARM, Scene, render_fluoro
 from drillnav.drivers.webcam import CameraUnavailable
@@ -44,10 +45,19 @@ class CameraFrame:
     carm_from_drill: NDArray[np.float64] | None = None  # truth, twin only
 
 
-def freehand_loop(scene: Scene, rng: np.random.Generator, *, loop_frames: int, keyposes: int) -> list[NDArray[np.float64]]:
+def freehand_loop(scene: Scene, rng: np.random.Generator, *, loop_frames: int, keyposes: int, aim_off_mm: float = 0.0) -> list[NDArray[np.float64]]:
     """``loop_frames`` poses ``carm_from_drill`` (4, 4) along a closed path through ``keyposes`` random drill poses
-    aimed at the corridor (translation interpolated linearly, rotation by slerp); draws the key poses from ``rng``."""
+    aimed at the corridor (translation interpolated linearly, rotation by slerp); draws the key poses from ``rng``.
+
+    ``aim_off_mm``: every pose moved this far sideways, square to the corridor (a surgeon aiming off the plan: the
+    video-CT verdict is then a breach); 0 draws exactly the poses it drew before the option existed.
+    """
     keys = [scene.drill_pose_towards(rng, offset_mm=4.0, tilt_deg=4.0) for _ in range(keyposes)]
+    if aim_off_mm:
+        along = scene.carm_from_ct[:3, :3] @ anatomy.corridor_direction(scene.corridor)
+        side = np.cross(along, [0.0, 0.0, 1.0] if abs(along[2]) < 0.9 else [1.0, 0.0, 0.0])
+        shift = aim_off_mm * side / np.linalg.norm(side)
+        keys = [make_transform(k[:3, :3], k[:3, 3] + shift) for k in keys]
     keys.append(keys[0])
     times = np.linspace(0, 1, len(keys))
     slerp = Slerp(times, Rotation.from_matrix([k[:3, :3] for k in keys]))
@@ -69,7 +79,7 @@ class TwinDrillCamera:
     """
 
     def __init__(self, *, scene: Scene, fps: float = 30.0, loop_frames: int = 90, keyposes: int = 4, seed: int = 0,
-                 unplug_every_s: float | None = None, unplug_s: float = 3.0) -> None:
+                 unplug_every_s: float | None = None, unplug_s: float = 3.0, aim_off_mm: float = 0.0) -> None:
         if fps <= 0:
             raise ValueError(f"fps must be positive, got {fps}")
         if loop_frames < 1:
@@ -80,7 +90,7 @@ class TwinDrillCamera:
         self._first_open = None  # monotonic s of the first open: the schedule's origin
         self._pulled = False  # unplug() without plug()
         rng = np.random.default_rng(seed)
-        self.poses = freehand_loop(scene, rng, loop_frames=loop_frames, keyposes=keyposes)
+        self.poses = freehand_loop(scene, rng, loop_frames=loop_frames, keyposes=keyposes, aim_off_mm=aim_off_mm)
         self.period_s = 1.0 / fps
         self._scene = scene
         # The same generator, drawn in loop order after the key poses, as when the loop was rendered up front.
