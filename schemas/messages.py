@@ -217,6 +217,8 @@ class Status(_Message):
     ct_failures: NonNegInt | None = None
     ct_similarity_gc: float | None = None
     ct_last_error: str | None = None
+    joint_solves: dict[str, NonNegInt] | None = Field(None, description="the periodic joint solve: requested of its worker process, adopted, "
+                                                      "solved inline on the frame path (the worker was late), dropped, failed")
 
 
 @_bind
