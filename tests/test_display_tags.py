@@ -2,9 +2,13 @@
 sends as previews frames the node tracked, each with its own tags (real zenoh, the real node, the reference recording)."""
 
 import asyncio
+import base64
 import json
 import threading
 import time
+
+import cv2
+import numpy as np
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.schemas import messages as msg
@@ -75,3 +79,12 @@ def test_each_frames_tags_are_published_and_the_hub_sends_those_of_its_previews(
         assert m["tags"]["stamp_ns"] == m["stamp_ns"] and m["stamp_ns"] in by_stamp
         assert [t["id"] for t in m["tags"]["markers"]] == [t.id for t in by_stamp[m["stamp_ns"]].markers]
     assert not any(m["type"] == "tags" for m in sent)  # no stream of tags apart from their pictures
+    # A preview is a quarter of the frame's width (the page shows it 320 px wide), a JPEG of the same picture.
+    for m in previews:
+        small = cv2.imdecode(np.frombuffer(base64.b64decode(m["data_base64"]), np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert m["format"] == "jpeg" and small.shape == (scene.calibrated_camera.height // 4, scene.calibrated_camera.width // 4)
+    frame = next(d for t, _, d in iter_recording(RECORDING) if t.endswith("camera/image") and msg.decode_compressed_image(d)[1] == previews[0]["stamp_ns"])
+    full = msg.decode_compressed_image(frame)[0]
+    full = full if full.ndim == 2 else cv2.cvtColor(full, cv2.COLOR_BGR2GRAY)
+    small = cv2.imdecode(np.frombuffer(base64.b64decode(previews[0]["data_base64"]), np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert np.abs(cv2.resize(full, small.shape[::-1], interpolation=cv2.INTER_AREA).astype(float) - small).mean() < 4.0
