@@ -73,7 +73,7 @@ def main() -> None:
         figure("worker joint solve: frame CPU p99", pct(cpu_b, 99), "ms", None),
         figure("worker joint solve: frame wall max", float(wall_b.max()), "ms", None),
         figure("periodic solves adopted from the worker", float(counters.adopted), "n", None),
-        figure("periodic solves done inline (worker late)", float(counters.inline), "n", None),
+        figure("periodic solves adopted late (worker late)", float(counters.late), "n", None),
     ], frames_per_mode=args.frames, load_average_1min=round(os.getloadavg()[0], 1),
         note="one process, the recording's frames paced at 30 frames/s; 2-core machine shared with other work")
 

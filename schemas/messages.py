@@ -218,7 +218,7 @@ class Status(_Message):
     ct_similarity_gc: float | None = None
     ct_last_error: str | None = None
     joint_solves: dict[str, NonNegInt] | None = Field(None, description="the periodic joint solve: requested of its worker process, adopted, "
-                                                      "solved inline on the frame path (the worker was late), dropped, failed")
+                                                      "late (adopted by a later frame), restarted (its worker died), dropped, failed")
 
 
 @_bind

@@ -7,15 +7,19 @@ as long as the others, and that frame set the daemon's p99. :class:`JointSolveWo
 Python in scipy's ``least_squares`` and would hold the GIL the frame thread needs), and the frames go on with the
 refinement they have.
 
-Schedule (deterministic, so a recording replayed gives the axes it gave live):
+Schedule (on capture stamps, so a recording replayed gives the axes it gave live while the worker keeps up):
 
 - a frame whose refinement does not fit the registration or calibration in use (a new shot, a new calibration)
   still runs the joint solve on the frame path, as before: the first axis of a new registration is joint-solved;
 - a frame stamped ``s`` whose refinement is ``JOINT_PERIOD_NS`` old asks the worker for a solve of its own
   detections;
 - that solve is adopted by the first frame stamped at or after ``s + adopt_after_ns`` (three frames at 30 frames/s
-  by default), which waits for it if it is not done (up to ``wait_s``; then it solves the same inputs itself: the
-  same result, later). Which frame adopts which solve depends on capture stamps alone, never on the worker's speed.
+  by default; the solve takes ~20 ms). If the worker is late (a loaded machine), that frame waits at most
+  ``wait_s`` (0 in the daemon: never) and goes on with the refinement it has; the first frame after the solve is
+  done adopts it. The frame path never solves it itself: an inline solve was a 40 ms frame, the stream's p99.
+- a worker process that died is replaced and given the same solve again; one that has not answered
+  ``GIVE_UP_NS`` of capture time after the adoption was due is replaced and the solve dropped (the next period
+  asks again);
 - a solve requested under another registration or calibration than the adopting frame's is dropped (never mixed).
 """
 
@@ -24,13 +28,12 @@ from __future__ import annotations
 import concurrent.futures
 import multiprocessing
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.errors import DrillnavError
 from drillnav.registration.marker_pose import MarkerPose
 from drillnav.registration.markers import MarkerSet
 from drillnav.registration.pipeline import (JOINT_PERIOD_NS, FrameAxis, JointRefinement, LiveCalibration, ReliableLimits, joint_refinement,
@@ -38,11 +41,12 @@ from drillnav.registration.pipeline import (JOINT_PERIOD_NS, FrameAxis, JointRef
 from drillnav.registration.video_fluoro import DrillRegistration, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections
 
-__all__ = ["JointSolveWorker", "JointSolveCounters", "ADOPT_AFTER_NS", "WAIT_S"]
+__all__ = ["JointSolveWorker", "JointSolveCounters", "ADOPT_AFTER_NS", "WAIT_S", "GIVE_UP_NS"]
 
 ADOPT_AFTER_NS = 100_000_000  # capture time from a solve's frame to the frame that adopts it (ns): ~4x the solve's own time
-WAIT_S = 0.02  # the adopting frame waits this long for the worker before solving the same inputs itself: no longer than
-# the solve itself takes (~27 ms), so a late worker (a loaded machine) costs one inline solve, never a gap in the stream
+WAIT_S = 0.0  # how long the adopting frame may wait for a late worker: never, on the live frame path (tests wait, to
+# pin the adopting frame)
+GIVE_UP_NS = 2_000_000_000  # a worker silent this long (capture time) past the adoption is stuck: replaced, the solve dropped
 
 _marker_set: MarkerSet | None = None  # the worker process's own copy, sent once
 
@@ -68,9 +72,10 @@ def _ready() -> bool:
 class JointSolveCounters:
     requested: int = 0      # periodic solves given to the worker
     adopted: int = 0        # of them, adopted by a frame
-    inline: int = 0         # solved on the frame path because the worker was late or broken
+    late: int = 0           # not done when their adoption was due: adopted by a later frame (or dropped)
+    restarted: int = 0      # given again to a new worker process, the old one having died
     dropped: int = 0        # requested under a registration or calibration replaced before adoption
-    failed: int = 0         # the solve raised (the frames keep the refinement they had)
+    failed: int = 0         # the solve raised, or the worker stuck (the frames keep the refinement they had)
     last_failure: str | None = None
 
 
@@ -81,6 +86,7 @@ class _Pending:
     poses: tuple[MarkerPose, ...]
     calibration: LiveCalibration
     future: concurrent.futures.Future
+    late: bool = False  # its adoption was due and it was not done
 
 
 class JointSolveWorker:
@@ -91,11 +97,11 @@ class JointSolveWorker:
     """
 
     def __init__(self, *, marker_set: MarkerSet, joint_period_ns: int = JOINT_PERIOD_NS, adopt_after_ns: int = ADOPT_AFTER_NS,
-                 wait_s: float = WAIT_S) -> None:
+                 wait_s: float = WAIT_S, give_up_ns: int = GIVE_UP_NS) -> None:
         if adopt_after_ns < 0 or joint_period_ns <= 0 or wait_s < 0:
             raise ValueError(f"joint_period_ns must be > 0, adopt_after_ns and wait_s >= 0 (got {joint_period_ns}, {adopt_after_ns}, {wait_s})")
         self.marker_set = marker_set
-        self.joint_period_ns, self.adopt_after_ns, self.wait_s = joint_period_ns, adopt_after_ns, wait_s
+        self.joint_period_ns, self.adopt_after_ns, self.wait_s, self.give_up_ns = joint_period_ns, adopt_after_ns, wait_s, give_up_ns
         self.counters = JointSolveCounters()
         self.refinement: JointRefinement | None = None
         self._pending: _Pending | None = None
@@ -133,8 +139,7 @@ class JointSolveWorker:
             self._pending, pending = None, None
             self.counters.dropped += 1
         if pending is not None and stamp_ns >= pending.at_ns + self.adopt_after_ns:
-            self._pending = None
-            adopted = self._adopt(pending)
+            adopted = self._adopt(pending, stamp_ns=stamp_ns)
             if adopted is not None:
                 self.refinement = adopted
         fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=limits, refinement=self.refinement,
@@ -151,20 +156,32 @@ class JointSolveWorker:
         try:
             return self._pool.submit(_solve, video, poses, camera)
         except BrokenProcessPool:  # the worker died (killed, out of memory): a new one, once
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = self._new_pool()
+            self._replace_pool()
             return self._pool.submit(_solve, video, poses, camera)
 
-    def _adopt(self, p: _Pending) -> JointRefinement | None:
+    def _adopt(self, p: _Pending, *, stamp_ns: int) -> JointRefinement | None:
+        """The solve's refinement if it is done (waiting at most ``wait_s``, and only the first time); None otherwise."""
         try:
-            reg = p.future.result(timeout=self.wait_s)
-        except (concurrent.futures.TimeoutError, concurrent.futures.CancelledError, BrokenProcessPool):
-            p.future.cancel()
-            self.counters.inline += 1
-            try:
-                reg = register_video_to_fluoro(p.video, p.poses, self.marker_set, p.calibration.camera)
-            except (DrillnavError, ValueError) as exc:
-                reg = f"{type(exc).__name__}: {exc}"
+            reg = p.future.result(timeout=0.0 if p.late else self.wait_s)
+        except concurrent.futures.TimeoutError:
+            if not p.late:
+                self.counters.late += 1
+                self._pending = p = replace(p, late=True)
+            if stamp_ns > p.at_ns + self.adopt_after_ns + self.give_up_ns:
+                self._pending = None
+                self._replace_pool()
+                self.counters.failed += 1
+                self.counters.last_failure = f"the worker did not answer within {self.give_up_ns / 1e9:g} s of capture time; replaced"
+            return None
+        except BrokenProcessPool:  # the worker died (killed, out of memory): a new one gets the same solve
+            self._replace_pool()
+            self._pending = replace(p, future=self._pool.submit(_solve, p.video, p.poses, p.calibration.camera))
+            self.counters.restarted += 1
+            return None
+        except concurrent.futures.CancelledError:
+            self._pending = None
+            return None
+        self._pending = None
         if isinstance(reg, str):
             self.counters.failed += 1
             self.counters.last_failure = reg
@@ -172,3 +189,7 @@ class JointSolveWorker:
         self.counters.adopted += 1
         return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns)
 
+    def _replace_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool = self._new_pool()
