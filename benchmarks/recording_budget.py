@@ -1,7 +1,8 @@
 """Recording disk budget: GB per hour at 720p30 with the [recording] defaults, beside the old default (every frame as sent).
 
-The twin's drill camera renders 1280x720 frames, published at 30 frames/s as the daemon sends them (JPEG
-quality 92); the twin's two C-arm shots go to a live RegistrationNode, which publishes what it does in the
+The twin's drill camera renders 1280x720 frames, published at 30 frames/s at JPEG quality 92 (a camera process
+elsewhere; ``drillnav serve``'s own camera encodes once at the recording's quality, which the recorder then keeps as
+received: the same bytes on disk as the re-encode measured here); the twin's two C-arm shots go to a live RegistrationNode, which publishes what it does in the
 daemon (axes, overlays, marker poses, status, events). Two real Recorders on one zenoh session record the
 same bus: one built from the default settings (``Recorder.from_settings``), one keeping every frame as
 received (the old default). Issue 14's bar: at most 3 GB per hour at 720p30.

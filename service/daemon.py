@@ -300,6 +300,11 @@ class Daemon:
             self.stop_recording(name)
 
     # -- loops -----------------------------------------------------------------------------
+    @property
+    def _camera_jpeg_quality(self) -> int:
+        """The camera's JPEG on the bus: at the recording's quality (the recorder then keeps it as received), 92 when that is 0."""
+        return self.settings.recording.camera_jpeg_quality or 92
+
     def _camera_loop(self) -> None:
         pub = self.session.declare_publisher(key(self.prefix, "camera_image"))
 
@@ -311,7 +316,7 @@ class Daemon:
             # The node takes the pixels as captured, then the JPEG goes on the bus (recorder, display) while it tracks
             # them: the encode and a decode are off the capture-to-axis path (~6 ms a frame on 2 cores).
             self.node.take_frame(frame.image, frame.stamp_ns)
-            pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=92))
+            pub.put(msg.compressed_image(frame.image, stamp_ns=frame.stamp_ns, frame_id="drill_camera", fmt="jpeg", quality=self._camera_jpeg_quality))
 
         def on_event(level: str, message: str) -> None:
             if level == "error":
@@ -491,8 +496,9 @@ class Daemon:
     def start_recording(self, name: str) -> list[str]:
         if name in self._recorders:
             raise KeyError(f"recording '{name}' is already running")
-        rec = Recorder.from_settings(self.settings.recording, session=self.session, prefix=self.prefix, name=name, on_event=self._event,
-                                     carried_state=self.carried)
+        # The camera loop already encodes at the recording's quality: the recorder keeps its frames as received (one encode, not two).
+        rec = Recorder.from_settings(self.settings.recording.model_copy(update={"camera_jpeg_quality": 0}), session=self.session, prefix=self.prefix,
+                                     name=name, on_event=self._event, carried_state=self.carried)
         self._recorders[name] = rec
         return [str(p) for p in rec.files]
 
