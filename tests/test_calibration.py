@@ -105,7 +105,7 @@ def test_drill_axis_refusals(tmp_path):
     poses = [jig_pose(f, TRUE) for f in jig_frames(4, span=10.0)]
     with pytest.raises(DegenerateInput, match="too small"):
         fit_axis_screw(poses)
-    bad = [jig_pose(f, TRUE) for f in jig_frames(6)]
+    bad = [jig_pose(f, TRUE) for f in jig_frames()]  # test_drill_axis_both_methods's frames (rendered once)
     bad[3] = make_transform(Rotation.from_euler("y", 40, degrees=True).as_matrix(), [0, 0, 0]) @ bad[3]
     with pytest.raises(DegenerateInput, match="disagree"):
         fit_axis_screw(bad)
@@ -117,7 +117,7 @@ def test_drill_axis_cli(tmp_path, capsys):
     cam = tmp_path / "camera.json"
     write_camera_calibration(cam, TRUE, rms_px=0.2, per_view_errors_px=[], label="twin")
     paths = []
-    for i, f in enumerate(jig_frames(6)):
+    for i, f in enumerate(jig_frames()):  # test_drill_axis_both_methods's frames (rendered once)
         paths.append(tmp_path / f"f{i}.png")
         cv2.imwrite(str(paths[-1]), f)
     out = tmp_path / "drill.json"

@@ -70,6 +70,21 @@ def test_a_file_written_slowly_is_retried_then_taken(tmp_path, source, syntax):
     assert _poll_until(w) == [target]
 
 
+def test_a_file_shorter_than_a_preamble_is_refused_only_after_give_up(tmp_path):
+    """Under 132 bytes a file may be a DICOM whose writer has not reached 'DICM' yet: it waits give_up_s, then is named."""
+    folder = tmp_path / "in"
+    errors = []
+    w = FolderWatcher(folder=folder, give_up_s=0.3, on_error=lambda p, m: errors.append(m))
+    (folder / "broken.dcm").write_bytes(b"garbage" * 10)
+    t0 = time.monotonic()
+    while not errors and time.monotonic() - t0 < 3.0:
+        assert w.poll() == []
+        time.sleep(0.02)
+    assert time.monotonic() - t0 >= 0.3, "refused before give_up_s"
+    assert len(errors) == 1 and "broken.dcm" in errors[0] and "not a DICOM file" in errors[0]
+    assert w.poll() == [] and len(errors) == 1  # reported once
+
+
 def test_journal_survives_a_restart(tmp_path, source):
     folder = tmp_path / "in"
     old = os.umask(0o022)

@@ -27,7 +27,9 @@ from drillnav.service.settings import load_settings
 P = "drillnav"
 
 
-def _wait(cond, timeout_s: float = 10.0) -> None:
+def _wait(cond, timeout_s: float = 30.0) -> None:
+    # A deadline, not a sleep (it returns when cond holds): on a loaded shared machine the recorder's re-encoding of
+    # 45 720p frames was seen to take over 10 s.
     deadline = time.monotonic() + timeout_s
     while not cond():
         if time.monotonic() > deadline:

@@ -2,6 +2,9 @@
 
 Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera; a frame of
 field markers where the jig should be, through the twin's marker renderer.
+
+A full-frame render costs about a second of CPU, and several tests (in one pytest process) ask for the same views: each
+set is rendered once per process and handed out read-only, so a test that drew on a shared frame would fail loudly.
 """
 
 import cv2
@@ -16,11 +19,29 @@ from drillnav.registration.transforms import make_transform
 
 BOARD_SIZE_MM = (12 * 25.0, 9 * 25.0)  # 9x6 inner corners of 25 mm + 1 + a white square each side
 
+_RENDERED: dict[tuple, list[np.ndarray]] = {}
+
+
+def _once(kind: str, camera: PinholeCamera, args: tuple, render) -> list[np.ndarray]:
+    """``render()``'s frames for (kind, camera, args), rendered on first use; a new list of read-only frames."""
+    k = (kind, camera.width, camera.height, camera.camera_matrix.tobytes(), camera.distortion.tobytes(), args)
+    if k not in _RENDERED:
+        frames = render()
+        for f in frames:
+            f.setflags(write=False)
+        _RENDERED[k] = frames
+    return list(_RENDERED[k])
+
 
 def board_views(camera: PinholeCamera, n: int, *, tilt_deg: float = 30.0, spin_deg: float = 20.0, offset_mm=(40.0, 25.0),
                 distance_mm=(380.0, 480.0), seed: int = 0) -> list[np.ndarray]:
     """``n`` views of the 9x6 checkerboard, tilted up to ``tilt_deg``, spun up to ``spin_deg``, centred within
     ``offset_mm`` of the optical axis at ``distance_mm``."""
+    args = (n, tilt_deg, spin_deg, tuple(offset_mm), tuple(distance_mm), seed)
+    return _once("board", camera, args, lambda: _board_views(camera, n, tilt_deg, spin_deg, offset_mm, distance_mm, seed))
+
+
+def _board_views(camera, n, tilt_deg, spin_deg, offset_mm, distance_mm, seed) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     tex = checkerboard_texture(9, 6)
     views = []
@@ -34,6 +55,11 @@ def board_views(camera: PinholeCamera, n: int, *, tilt_deg: float = 30.0, spin_d
 
 def jig_frames(camera: PinholeCamera, axis: Line3D, n: int = 8, span_deg: float = 120.0, seed: int = 0) -> list[np.ndarray]:
     """The ArUco jig turning about ``axis`` (camera frame), 150 mm along it from its point, over ``span_deg``."""
+    args = (axis.point_mm.tobytes(), axis.direction.tobytes(), n, span_deg, seed)
+    return _once("jig", camera, args, lambda: _jig_frames(camera, axis, n, span_deg, seed))
+
+
+def _jig_frames(camera, axis, n, span_deg, seed) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     s = jig_size_mm()
     px, pad = 800, 80  # the printed jig keeps a white quiet zone about the board
