@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
+from tag_detection import _true_corners  # noqa: E402
 
 from drillnav.drivers.sim.anatomy import Corridor
 from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy
@@ -82,7 +83,8 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
         diagnose: list | None = None) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
-    ``diagnose``: a list that gets one dict per refused joint registration (see :func:`_case`).
+    ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
+    (its error, 90 % bounds, reliable, and the number of markers used).
     """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
@@ -135,23 +137,17 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                 pe = predicted_axis_error(video, chosen, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
                                 pos = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
                                 rows.setdefault(key, []).append((pos, axis.angle_deg(true_axis), pe.position90_mm, pe.angle90_deg, pe.reliable))
+                                if diagnose is not None and method == "joint":
+                                    diagnose.append({"seed": seed, "pair": pair, "views": list(vs), "M": m, "used": len(reg.used_ids), "pos_mm": pos,
+                                                     "ang_deg": axis.angle_deg(true_axis), "b90_mm": pe.position90_mm, "b90_deg": pe.angle90_deg,
+                                                     "reliable": pe.reliable})
         print(f"[{deg.label()}] seed {seed} done", file=sys.stderr, flush=True)
     return {"rows": rows, "refusals": refusals, "tried": tried}
 
 
 def tags_in_view(scene, carm_from_drill) -> set[int]:
-    """Markers whose tag lies wholly inside the camera frame and faces the camera at this drill pose (the twin's truth)."""
-    cam = scene.true_camera
-    out = set()
-    for i, pose in scene.camera_from_marker(carm_from_drill).items():
-        design = scene.marker_set.by_id(i)
-        corners = (pose @ np.c_[design.tag_corners_mm(), np.ones(4)].T).T[:, :3]
-        if np.any(corners[:, 2] <= 1.0) or float(pose[:3, 2] @ pose[:3, 3]) >= 0.0:
-            continue  # behind the camera or seen from the back
-        px = cam.project(corners)
-        if np.all((px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)):
-            out.add(i)
-    return out
+    """Markers whose tag lies wholly inside the camera frame at this drill pose (the twin's truth, as tag_detection.py counts them)."""
+    return set(_true_corners(scene, carm_from_drill))
 
 
 def _case(scene, carm_from_drill, video, dets: dict, chosen, subset, *, seed: int, pair: str, reason: str) -> dict:
@@ -167,9 +163,22 @@ def _case(scene, carm_from_drill, video, dets: dict, chosen, subset, *, seed: in
 
 
 def print_cases(cases: list[dict]) -> None:
-    """Per refused case (M = 5 only, to keep it short): camera tags found / in view, identified per view, common, reason."""
+    """Per refused case (M = 5 only, to keep it short): camera tags found / in view, identified per view, common, reason;
+    then the registrations by the number of markers they used (every M): n, median error, coverage, flagged."""
+    done = [c for c in cases if "used" in c]
+    print("| views | markers used | n | position median / max mm | angle median / max deg | coverage pos / ang | flagged | >10 deg unflagged |", file=sys.stderr)
+    print("|---|---|---|---|---|---|---|---|", file=sys.stderr)
+    for nv, used in sorted({(len(c["views"]), c["used"]) for c in done}):
+        g = [c for c in done if len(c["views"]) == nv and c["used"] == used]
+        pos, ang = np.array([c["pos_mm"] for c in g]), np.array([c["ang_deg"] for c in g])
+        cov_p = 100.0 * np.mean([c["pos_mm"] <= c["b90_mm"] for c in g])
+        cov_a = 100.0 * np.mean([c["ang_deg"] <= c["b90_deg"] for c in g])
+        flagged = 100.0 * np.mean([not c["reliable"] for c in g])
+        unflagged = sum(c["ang_deg"] > 10 and c["reliable"] for c in g)
+        print(f"| {nv} | {used} | {len(g)} | {np.median(pos):.2f} / {pos.max():.2f} | {np.median(ang):.2f} / {ang.max():.2f} | "
+              f"{cov_p:.0f} / {cov_a:.0f} % | {flagged:.0f} % | {unflagged} |", file=sys.stderr)
     for c in cases:
-        if c["M"] != 5:
+        if c["M"] != 5 or "used" in c:
             continue
         views = "; ".join(f"{n} {len(ids)} {ids} (rejected: {dict(c['rejected_rings'][n])})" for n, ids in c["identified"].items())
         print(f"seed {c['seed']} {c['pair']} [{','.join(c['views'])}] M=5: camera {len(c['camera_found'])}/{len(c['camera_in_view'])} "
