@@ -181,7 +181,8 @@ def register_video_to_fluoro(
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
-        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
+        covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
+        extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
                      mirror_carm_from_drill=alternative)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
@@ -250,6 +251,19 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
         return best, other.carm_from_drill
     return best, None
+
+
+def _spanning(covariance: NDArray[np.float64], carm_from_drill: NDArray[np.float64], mirror: NDArray[np.float64],
+              pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``covariance`` (6, 6) widened to reach the mirror solution: plus the outer product of the perturbation (about ``pivot_mm``) to it.
+
+    The frames after a joint solve keep its covariance but not its mirror (``pipeline.joint_refinement``): a
+    covariance that spans the open mirror keeps them flagged. With the mirror at one sigma along its own
+    direction, the 90 % bound lies past the mirror's axis.
+    """
+    r = mirror[:3, :3] @ carm_from_drill[:3, :3].T
+    delta = np.concatenate([Rotation.from_matrix(r).as_rotvec(), mirror[:3, 3] - r @ (carm_from_drill[:3, 3] - pivot_mm) - pivot_mm])
+    return covariance + np.outer(delta, delta)
 
 
 def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> NDArray[np.float64]:
