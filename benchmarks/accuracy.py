@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
+from tag_detection import _true_corners  # noqa: E402
 
 from drillnav.drivers.sim.anatomy import Corridor
 from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy
@@ -78,8 +79,13 @@ class _Shots:
 
 
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
-        ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None) -> dict:
-    """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable)."""
+        ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
+        diagnose: list | None = None) -> dict:
+    """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
+
+    ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
+    (its error, 90 % bounds, reliable, and the number of markers used).
+    """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
     tried: Counter = Counter()
@@ -121,6 +127,9 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                 except DrillnavError as exc:
                                     reason = str(exc).split(" (")[0].split(";")[0]
                                     refusals.setdefault(key, Counter())[reason] += 1
+                                    if diagnose is not None and method == "joint":
+                                        diagnose.append(_case(scene, carm_from_drill, video, {n: dets[n] for n in vs}, chosen, subset,
+                                                              seed=seed, pair=pair, reason=str(exc)))
                                     continue
                                 entry = scene.corridor_entry_carm_mm
                                 axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
@@ -128,8 +137,91 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                 pe = predicted_axis_error(video, chosen, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
                                 pos = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
                                 rows.setdefault(key, []).append((pos, axis.angle_deg(true_axis), pe.position90_mm, pe.angle90_deg, pe.reliable))
+                                if diagnose is not None and method == "joint":
+                                    diagnose.append({"seed": seed, "pair": pair, "views": list(vs), "M": m, "used": len(reg.used_ids), "pos_mm": pos,
+                                                     "ang_deg": axis.angle_deg(true_axis), "b90_mm": pe.position90_mm, "b90_deg": pe.angle90_deg,
+                                                     "reliable": pe.reliable})
         print(f"[{deg.label()}] seed {seed} done", file=sys.stderr, flush=True)
     return {"rows": rows, "refusals": refusals, "tried": tried}
+
+
+def tags_in_view(scene, carm_from_drill) -> set[int]:
+    """Markers whose tag lies wholly inside the camera frame at this drill pose (the twin's truth, as tag_detection.py counts them)."""
+    return set(_true_corners(scene, carm_from_drill))
+
+
+def _case(scene, carm_from_drill, video, dets: dict, chosen, subset, *, seed: int, pair: str, reason: str) -> dict:
+    """One refused registration: what each modality saw of the M markers placed."""
+    placed = set(subset)
+    found = {v.marker_id for v in video.markers} & placed
+    return {"seed": seed, "pair": pair, "views": list(dets), "M": len(placed),
+            "camera_found": sorted(found), "camera_in_view": sorted(tags_in_view(scene, carm_from_drill) & placed),
+            "identified": {n: sorted({m.marker_id for m in d.markers} & placed) for n, d in dets.items()},
+            "rejected_rings": {n: Counter(r.reason.split(" (")[0] for r in d.rejected) for n, d in dets.items()},
+            "posed": sorted(p.marker_id for p in chosen if p.observations),
+            "common": sorted(found & {p.marker_id for p in chosen if p.observations}), "reason": reason.split(" (")[0]}
+
+
+def print_cases(cases: list[dict]) -> None:
+    """Per refused case (M = 5 only, to keep it short): camera tags found / in view, identified per view, common, reason;
+    then the registrations by the number of markers they used (every M): n, median error, coverage, flagged."""
+    done = [c for c in cases if "used" in c]
+    print("| views | markers used | n | position median / max mm | angle median / max deg | coverage pos / ang | flagged | >10 deg unflagged |", file=sys.stderr)
+    print("|---|---|---|---|---|---|---|---|", file=sys.stderr)
+    for nv, used in sorted({(len(c["views"]), c["used"]) for c in done}):
+        g = [c for c in done if len(c["views"]) == nv and c["used"] == used]
+        pos, ang = np.array([c["pos_mm"] for c in g]), np.array([c["ang_deg"] for c in g])
+        cov_p = 100.0 * np.mean([c["pos_mm"] <= c["b90_mm"] for c in g])
+        cov_a = 100.0 * np.mean([c["ang_deg"] <= c["b90_deg"] for c in g])
+        flagged = 100.0 * np.mean([not c["reliable"] for c in g])
+        unflagged = sum(c["ang_deg"] > 10 and c["reliable"] for c in g)
+        print(f"| {nv} | {used} | {len(g)} | {np.median(pos):.2f} / {pos.max():.2f} | {np.median(ang):.2f} / {ang.max():.2f} | "
+              f"{cov_p:.0f} / {cov_a:.0f} % | {flagged:.0f} % | {unflagged} |", file=sys.stderr)
+    for c in cases:
+        if c["M"] != 5 or "used" in c:
+            continue
+        views = "; ".join(f"{n} {len(ids)} {ids} (rejected: {dict(c['rejected_rings'][n])})" for n, ids in c["identified"].items())
+        print(f"seed {c['seed']} {c['pair']} [{','.join(c['views'])}] M=5: camera {len(c['camera_found'])}/{len(c['camera_in_view'])} "
+              f"{c['camera_found']} of {c['camera_in_view']}; fluoro {views}; common {c['common']}; {c['reason']}", file=sys.stderr)
+
+
+def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, patient: VoxelAnatomy | None, poses: int = 1) -> dict:
+    """Where markers are lost under ``degradations``, M = 5, before any registration: tags the camera finds of those in
+    its field, markers fluoroscopy identifies per view (of 5), and markers identified in >= 1 view and found by the camera."""
+    cam_found = cam_in = 0
+    per_kind: dict[str, list[int]] = {}
+    common: list[int] = []
+    for seed in range(first_seed, first_seed + seeds):
+        rng = np.random.default_rng(seed)
+        for k, (pair, views) in enumerate(_pairs(rng).items()):
+            scene = make_scene(seed=seed, views=views, render=False, degradations=degradations, voxel_anatomy=patient if degradations.ct_anatomy else None)
+            image_rng = np.random.default_rng([seed, k, 1])
+            dets = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views}
+            for n, d in dets.items():
+                kind = n if pair != "random" else "random"
+                per_kind.setdefault(kind, []).append(len(d.markers))
+            identified = set().union(*({m.marker_id for m in d.markers} for d in dets.values()))
+            locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+            pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
+            for _ in range(poses):
+                pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
+                found = {v.marker_id for v in locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose)).markers}
+                cam_found += len(found)
+                cam_in += len(tags_in_view(scene, pose))
+                common.append(len(found & identified))
+    return {"camera_found": cam_found, "camera_in_view": cam_in, "identified": {k: float(np.mean(v)) for k, v in per_kind.items()},
+            "common_mean": float(np.mean(common)), "common_lt3_pct": 100.0 * float(np.mean(np.array(common) < 3))}
+
+
+def print_losses(seeds: int, *, patient: VoxelAnatomy | None, settings: list[tuple[str, Degradations]]) -> None:
+    """A markdown table of :func:`losses` per degradation setting."""
+    kinds = ("ap", "lateral", "inlet", "outlet", "random")
+    print("| setting | camera tags found / in view | " + " | ".join(kinds) + " | common (mean) | common < 3 |")
+    print("|---|---|" + "---|" * len(kinds) + "---|---|")
+    for name, deg in settings:
+        r = losses(seeds, degradations=deg, patient=patient)
+        ids = " | ".join(f"{r['identified'].get(k, float('nan')):.2f}" for k in kinds)
+        print(f"| {name} | {r['camera_found']} / {r['camera_in_view']} | {ids} | {r['common_mean']:.2f} | {r['common_lt3_pct']:.0f} % |", flush=True)
 
 
 def per_degradation(seeds: int, poses: int, *, patient: VoxelAnatomy | None, shots: _Shots, all_result: dict | None) -> list[dict]:
@@ -283,6 +375,9 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
         "  focal scale and principal point (held by priors of their calibration uncertainty) by least squares over every",
         "  BB in every view (0.35 px) and every tag corner (0.3 px); a robust pass names and rejects a marker that",
         "  stands out and drops single BBs over 5 sigma. Markers whose fluoroscopy-only pose did not converge join it.",
+        "- **One or two markers in common** register (a tag's corners fix the marker's pose in D, its BBs its pose in C),",
+        "  starting from the marker poses instead of Horn, with no outlier rejection below 3; refused only with no marker",
+        "  in common or under 4 BBs in all ([identity and error](identity_and_error.md#one-or-two-markers-in-common)).",
         "- **The predicted error**: the solve's covariance (BB and corner noise each re-estimated from its own residuals, variance components; camera prior 0.3 % / 1.5 px) propagated to the axis with",
         "  the drill axis's calibration uncertainty; 90 % and 95 % bounds of the position at the working point and of the",
         "  angle; `reliable` is False when a 90 % bound is over its limit (`RELIABLE_POSITION_MM`, `RELIABLE_ANGLE_DEG`,",
@@ -346,6 +441,10 @@ def main() -> None:
                     "(default all; with --quick all but ct_anatomy, whose DRRs take ~25 s a shot)")
     ap.add_argument("--per-degradation", action="store_true", help="also each degradation alone (M = 5, joint solve)")
     ap.add_argument("--ct", type=Path, default=CT, help="the real CT for the ct_anatomy degradation (default %(default)s)")
+    ap.add_argument("--diagnose", action="store_true", help="print each refused joint registration (M = 5): tags the camera found vs in "
+                    "its field, markers identified per view, markers in common, the reason; with --per-degradation, instead a table of "
+                    "where markers are lost per degradation setting (no registrations)")
+    ap.add_argument("--first-seed", type=int, default=3000)
     ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running)")
     args = ap.parse_args()
     seeds, poses = (2, 1) if args.quick else (args.seeds, args.poses)
@@ -358,8 +457,15 @@ def main() -> None:
     needs_ct = degradations.ct_anatomy or args.per_degradation
     patient = load_patient(args.ct) if needs_ct and (degradations.ct_anatomy or args.ct.exists()) else None
     t0 = time.perf_counter()
+    if args.diagnose and args.per_degradation:
+        settings = [("none", Degradations())] + [(n, Degradations().only(n)) for n in Degradations.names() if n != "ct_anatomy" or patient is not None]
+        print_losses(seeds, patient=patient, settings=settings + [(degradations.label(), degradations)])
+        return
     shots = _Shots()
-    result = run(seeds, poses, degradations=degradations, patient=patient, shots=shots)
+    cases: list | None = [] if args.diagnose else None
+    result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases)
+    if cases is not None:
+        print_cases(cases)
     summary = summarise(result)
     per_deg = per_degradation(seeds, poses, patient=patient, shots=shots, all_result=result if degradations.label() == "all" else None) if args.per_degradation else None
     minutes = (time.perf_counter() - t0) / 60.0

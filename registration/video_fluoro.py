@@ -37,7 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
-from .video_claims import claim_from_video
+from .video_claims import claim_from_video, drill_from_marker, fit_constellation
 from .video_markers import VideoDetections
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -95,7 +95,7 @@ def register_video_to_fluoro(
     camera: PinholeCamera,
     *,
     outlier_mm: float = 2.5,
-    min_markers: int = 3,
+    min_markers: int = 1,
     joint: bool = True,
 ) -> DrillRegistration:
     """``carm_from_drill`` from the markers seen by the camera and localised in fluoroscopy.
@@ -104,6 +104,12 @@ def register_video_to_fluoro(
     their BB observations (the default); False keeps the former Horn + corner PnP pipeline. With the joint
     solve, markers the camera sees claim their BBs where fluoroscopy did not identify them
     (:func:`.video_claims.claim_from_video`), so an edge-on marker in a single view still counts.
+
+    One or two markers in common register too (a tag's four corners give the marker's full pose in D, its BBs
+    its pose in C): the joint solve's covariance carries the weaker geometry into the predicted error, which
+    flags the axis unreliable when its bound is over the limits. Refused (``MarkersNotFound``) below
+    ``min_markers`` markers in common or below 4 BBs in all. Markers are rejected as outliers only while
+    3 or more remain: with two, neither can be told from the other.
     """
     if joint:
         marker_poses = claim_from_video(video, tuple(marker_poses), marker_set)
@@ -114,25 +120,35 @@ def register_video_to_fluoro(
     # The joint solve also takes markers whose fluoroscopy-only pose did not converge (edge-on, few BBs, one
     # view): the camera fixes their orientation, so their BBs still count.
     joinable = sorted(i for i in set(every) & set(vids) if every[i].observations) if joint else []
-    if len(common) < min_markers and len(joinable) < min_markers:
+    available = joinable if joinable and len(joinable) >= len(common) else common
+    # A converged pose handed in without its BB observations was posed from at least 4 BBs.
+    bbs = sum(sum(len(o[1]) for o in every[i].observations) if every[i].observations else 4 for i in available)
+    # One marker seen by the camera (its tag: a full pose in D) and posed in fluoroscopy fixes carm_from_drill;
+    # below four BBs in all its pose in C is not determined (three give up to four P3P solutions).
+    if len(available) < max(min_markers, 1) or bbs < 4:
         raise MarkersNotFound(
-            f"only {max(len(common), len(joinable))} marker(s) seen by both the camera and fluoroscopy "
-            f"(camera: {sorted(vids)}, fluoroscopy: {sorted(poses)}); at least {min_markers} are needed"
+            f"only {len(available)} marker(s) seen by both the camera and fluoroscopy "
+            f"(camera: {sorted(vids)}, fluoroscopy: {sorted(poses)}, {bbs} BBs); at least {max(min_markers, 1)} "
+            "with 4 or more BBs in all are needed"
         )
-    used = list(common if len(common) >= min_markers else joinable)
+    used = list(common if len(common) >= HORN_MIN_MARKERS else available)
     rejected: list[int] = []
-    while True:
-        fit = _horn(used, vids, every)
-        worst = int(np.argmax(fit.residuals_mm))
-        if fit.residuals_mm[worst] <= outlier_mm or len(used) <= min_markers:
-            break
-        # Leave-one-out: does the fit without the worst marker explain the others well?
-        rest = [i for k, i in enumerate(used) if k != worst]
-        if _horn(rest, vids, every).fre_mm < fit.fre_mm:
-            rejected.append(used.pop(worst))
-        else:
-            break
-    carm_from_drill_horn = fit.target_from_source
+    if len(used) >= HORN_MIN_MARKERS:
+        while True:
+            fit = _horn(used, vids, every)
+            worst = int(np.argmax(fit.residuals_mm))
+            if fit.residuals_mm[worst] <= outlier_mm or len(used) <= max(min_markers, HORN_MIN_MARKERS):
+                break
+            # Leave-one-out: does the fit without the worst marker explain the others well?
+            rest = [i for k, i in enumerate(used) if k != worst]
+            if _horn(rest, vids, every).fre_mm < fit.fre_mm:
+                rejected.append(used.pop(worst))
+            else:
+                break
+        carm_from_drill_horn = fit.target_from_source
+    else:
+        # One or two markers: no point-based fit; each marker's pose in C composed with its pose in D.
+        carm_from_drill_horn = _from_few_markers(used, vids, every, marker_set)
     carm_from_marker = {i: _camera_side(every[i], carm_from_drill_horn @ vids[i].camera_from_tag) for i in set(used) | set(common) | set(joinable)}
     # Joint PnP on all tag corners of the markers kept.
     obj, img = [], []
@@ -149,14 +165,14 @@ def register_video_to_fluoro(
     proj, _ = cv2.projectPoints(obj_a, rvec, tvec, camera.camera_matrix, camera.distortion)
     corner_rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_a) ** 2, axis=1))))
     extra: dict = {}
-    if len(joinable) >= min_markers:
+    if available is joinable:
         for i in joinable:
             if not every[i].converged:  # orientation from the camera, position from fluoroscopy
                 start = carm_from_drill @ vids[i].camera_from_tag
                 start[:3, 3] = every[i].position_carm_mm
                 carm_from_marker[i] = start
         solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
-                     marker_set=marker_set, camera=camera, min_markers=min_markers)
+                     marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)))
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
@@ -165,7 +181,8 @@ def register_video_to_fluoro(
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
-        extra = dict(covariance_drill=sol.covariance_drill, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
+        covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
+        extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
                      mirror_carm_from_drill=alternative)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
@@ -180,6 +197,25 @@ def register_video_to_fluoro(
         carm_from_marker=carm_from_marker,
         **extra,
     )
+
+
+# Below this many markers in common, no point-based (Horn) fit and no outlier rejection: two cannot outvote each other.
+HORN_MIN_MARKERS = 3
+
+
+def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.float64]:
+    """``carm_from_drill`` (4, 4) from one or two markers: each marker's pose in C composed with its pose in D.
+
+    With BB observations, the camera's constellation fitted to every BB (both planar solutions of each marker
+    as starts, :func:`.video_claims.fit_constellation`); without, the first marker's pose alone (the corner PnP
+    that follows uses every marker).
+    """
+    d_from_m = {i: drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm) for i in ids}
+    starts = [t @ invert(d_from_m[i]) for i in ids for t in (every[i].carm_from_marker, every[i].mirror_carm_from_marker) if t is not None]
+    anchors = {i: every[i].observations for i in ids if every[i].observations}
+    if not anchors:
+        return starts[0]
+    return fit_constellation(anchors, {i: d_from_m[i] for i in anchors}, starts)[0]
 
 
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
@@ -215,6 +251,19 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
         return best, other.carm_from_drill
     return best, None
+
+
+def _spanning(covariance: NDArray[np.float64], carm_from_drill: NDArray[np.float64], mirror: NDArray[np.float64],
+              pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``covariance`` (6, 6) widened to reach the mirror solution: plus the outer product of the perturbation (about ``pivot_mm``) to it.
+
+    The frames after a joint solve keep its covariance but not its mirror (``pipeline.joint_refinement``): a
+    covariance that spans the open mirror keeps them flagged. With the mirror at one sigma along its own
+    direction, the 90 % bound lies past the mirror's axis.
+    """
+    r = mirror[:3, :3] @ carm_from_drill[:3, :3].T
+    delta = np.concatenate([Rotation.from_matrix(r).as_rotvec(), mirror[:3, 3] - r @ (carm_from_drill[:3, 3] - pivot_mm) - pivot_mm])
+    return covariance + np.outer(delta, delta)
 
 
 def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -283,6 +332,10 @@ def predicted_axis_error(
         carm_from_drill = np.repeat(registration.carm_from_drill[None], n, axis=0)
         carm_from_drill[:, :3, :3] = r @ registration.carm_from_drill[:3, :3]
         carm_from_drill[:, :3, 3] = np.einsum("bij,j->bi", r, registration.carm_from_drill[:3, 3] - pivot) + pivot + delta[:, 3:]
+    elif len(registration.used_ids) < HORN_MIN_MARKERS:
+        # Without the joint solve's covariance, one or two markers give no point-based draws: no bound to state.
+        inf = float("inf")
+        return PredictedError(position_mm=inf, angle_deg=inf, cone_half_angle_deg=inf, position90_mm=inf, angle90_deg=inf, reliable=False)
     else:
         n = samples
         vids = video.by_id()

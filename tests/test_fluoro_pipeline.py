@@ -124,9 +124,10 @@ def test_ring_cut_by_the_field_edge_keeps_its_bbs(scene, solved):
 
 
 def test_too_few_common_markers(scene, solved):
+    """Two markers register (tests/test_few_markers.py); a caller that asks for three is refused."""
     _, poses, video = solved
     with pytest.raises(MarkersNotFound, match="only 2 marker"):
-        register_video_to_fluoro(video, poses[:2], scene.marker_set, scene.calibrated_camera)
+        register_video_to_fluoro(video, poses[:2], scene.marker_set, scene.calibrated_camera, min_markers=3)
 
 
 def test_blank_fluoro_finds_nothing(scene):

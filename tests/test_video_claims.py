@@ -52,12 +52,14 @@ def test_edge_on_marker_in_a_single_lateral_view_is_registered(lateral):
     assert pe.reliable
 
 
-def test_without_the_views_blobs_nothing_is_claimed_and_two_markers_are_refused(lateral):
-    scene, _, poses, video, _ = lateral
+def test_without_the_views_blobs_nothing_is_claimed_and_two_markers_register(lateral):
+    scene, det, poses, video, _ = lateral
     bare = tuple(replace(p, view_blobs=()) for p in poses)
     assert claim_from_video(video, bare, scene.marker_set) == bare
+    reg = register_video_to_fluoro(video, bare, scene.marker_set, scene.calibrated_camera)
+    assert sorted(reg.used_ids) == sorted(m.marker_id for m in det.markers)  # the edge-on one is not claimed
     with pytest.raises(MarkersNotFound, match="only 2 marker"):
-        register_video_to_fluoro(video, bare, scene.marker_set, scene.calibrated_camera)
+        register_video_to_fluoro(video, bare, scene.marker_set, scene.calibrated_camera, min_markers=3)
 
 
 def test_a_marker_the_camera_does_not_see_is_not_claimed(lateral):
