@@ -8,8 +8,9 @@ which of its two mirror poses it is in. Solving them together lets each cover
 the other's weakness.
 
 Unknowns: ``carm_from_drill`` (6), every marker's ``carm_from_marker`` (6 each)
-and the camera's focal scale and principal point (3, held near camera.json by a
-prior of its calibration uncertainty, so that the covariance carries it).
+and the camera's focal scale, principal point and distortion coefficients (8, held
+near camera.json by priors of its calibration uncertainty, so that the covariance
+carries it).
 Residuals, each divided by its noise: every identified BB in every fluoroscopy
 view (``fluoro_sigma_px``) and every tag corner in the camera image
 (``corner_sigma_px``). scipy's ``least_squares`` (trust-region reflective); the
@@ -37,16 +38,17 @@ from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
-__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX"]
+__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA"]
 
-N_INTRINSICS = 3  # focal scale (relative), cx, cy (px)
-# The camera model's uncertainty (1 sigma) held by the prior: focal length (relative, fx and fy together) and
-# principal point per axis. A calibration states about 0.2 % / 0.8 px (the twin's draws), but its distortion
-# error is not a parameter here and shows up through these: at 0.2 % / 0.8 px the single-view position bound
-# covered 38 % (AP+lateral) and 75 % (random) of the twin's errors, at 0.3 % / 1.5 px 75 % and 100 %
-# (seeds 7500-7503, M = 5, 8 registrations each).
-FOCAL_REL_SIGMA = 0.003
-PRINCIPAL_SIGMA_PX = 1.5
+N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
+# The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
+# length (relative, fx and fy together), principal point per axis, and the distortion coefficients. The
+# distortion's error is a parameter of its own: it used to act only through a focal / principal prior widened
+# to 0.3 % / 1.5 px, a fudge tuned on 4 seeds that, measured again on 32 (benchmarks/coverage.py), put the
+# covariance's position term at 1.4-1.5 times the pose's actual error.
+FOCAL_REL_SIGMA = 0.002
+PRINCIPAL_SIGMA_PX = 0.8
+DISTORTION_SIGMA = (0.003, 0.004, 0.0002, 0.0002, 0.002)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -106,6 +108,7 @@ def joint_solve(
     corner_sigma_px: float = 0.3,
     focal_rel_sigma: float = FOCAL_REL_SIGMA,
     principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
+    distortion_sigma: tuple[float, ...] = DISTORTION_SIGMA,
     outlier_chi: float = 4.0,
     bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
@@ -126,7 +129,10 @@ def joint_solve(
     drill0 = np.asarray(carm_from_drill0, dtype=np.float64)
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
     observations = {i: tuple(observations[i]) for i in ids}
-    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px)
+    prior_sigma = np.array([focal_rel_sigma, principal_sigma_px, principal_sigma_px, *distortion_sigma], dtype=np.float64)
+    if prior_sigma.shape != (N_INTRINSICS,) or not np.all(prior_sigma > 0):
+        raise ValueError(f"the camera priors need focal, principal and 5 distortion sigmas, all > 0; got {prior_sigma.tolist()}")
+    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     clean = max(sol.marker_chi.values()) <= outlier_chi and all(
@@ -180,6 +186,16 @@ def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tu
     return scales
 
 
+def _distortion_change(xy: NDArray[np.float64], dk: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Change (P, N, 2) of the distorted normalised coordinates of ``xy`` (P, N, 2) when the distortion
+    coefficients change by ``dk`` (P, 5: k1, k2, p1, p2, k3); the model is linear in them."""
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    k1, k2, p1, p2, k3 = (dk[:, j : j + 1] for j in range(5))
+    radial = r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.stack([x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x), y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y], axis=-1)
+
+
 def _trim(observations, carm_from_marker, max_px: float) -> tuple:
     """The observations without BBs farther than ``max_px`` from their projection (at least 3 kept per view)."""
     out = []
@@ -193,7 +209,7 @@ def _trim(observations, carm_from_marker, max_px: float) -> tuple:
 
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
-           fluoro_sigma_px, corner_sigma_px, focal_rel_sigma, principal_sigma_px, *, loss: str) -> JointSolution:
+           fluoro_sigma_px, corner_sigma_px, prior_sigma, *, loss: str) -> JointSolution:
     m = len(ids)
     poses0 = np.stack([markers0[i] for i in ids])
     pivots = poses0[:, :3, 3].copy()
@@ -230,38 +246,38 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         rf = (h[..., :2] / h[..., 2:3] - f_img_a) / fluoro_sigma_px
         cc = np.einsum("pnij,nj->pni", rot_m[:, c_mk], c_obj) + t_m[:, c_mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
-        xy = (cd[..., :2] / cd[..., 2:3]).reshape(-1, 2)
-        xy = camera.distort_normalized(xy).reshape(n, -1, 2)
+        xy0 = cd[..., :2] / cd[..., 2:3]
         intr = xs[:, 6 + 6 * m :]
+        xy = camera.distort_normalized(xy0.reshape(-1, 2)).reshape(n, -1, 2) + _distortion_change(xy0, intr[:, 3:])
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
         v = fy0 * s * xy[..., 1] + cy0 + intr[:, 2:3]
         rc = (np.stack([u, v], axis=-1) - c_img) / corner_sigma_px
-        prior = np.stack([intr[:, 0] / focal_rel_sigma, intr[:, 1] / principal_sigma_px, intr[:, 2] / principal_sigma_px], axis=1)
+        prior = intr / prior_sigma
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
     # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at
-    # once (the grouping scipy's jac_sparsity would find): 6 + 3 + 6 forward differences, evaluated in one
+    # once (the grouping scipy's jac_sparsity would find): 6 + 8 + 6 forward differences, evaluated in one
     # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
     # sparse differences, which evaluate the groups one call at a time).
     h = 1e-6
     row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), np.full(N_INTRINSICS, -1)])
     in_marker = np.nonzero(row_marker >= 0)[0]
-    steps = np.zeros((15, n_par))
+    steps = np.zeros((6 + N_INTRINSICS + 6, n_par))
     steps[np.arange(6), np.arange(6)] = h
     steps[6 + np.arange(N_INTRINSICS), 6 + 6 * m + np.arange(N_INTRINSICS)] = h
     for k in range(6):
-        steps[9 + k, 6 + k : 6 + 6 * m : 6] = h
+        steps[6 + N_INTRINSICS + k, 6 + k : 6 + 6 * m : 6] = h
 
     def jacobian(x):
         f = residuals(np.vstack([x, x + steps]))
         diff = (f[1:] - f[0]) / h
         jac = np.zeros((f.shape[1], n_par))
         jac[:, :6] = diff[:6].T
-        jac[:, 6 + 6 * m :] = diff[6:9].T
+        jac[:, 6 + 6 * m :] = diff[6 : 6 + N_INTRINSICS].T
         for k in range(6):
-            jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[9 + k, in_marker]
+            jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[6 + N_INTRINSICS + k, in_marker]
         return jac
 
     sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)

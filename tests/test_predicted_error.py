@@ -1,10 +1,10 @@
 """The predicted 90 % bound covers about 90 % of the errors, also when the measurement noise is larger than assumed.
 
 A Monte-Carlo over everything the product is uncertain about, each drawn at its stated size: the camera
-calibration (focal length, principal point: joint_solve's prior), the drill axis calibration (drill.json's
-0.1 mm / 0.12 deg), the fluoroscopy BB centres and the tag corners (the noise the joint solve assumes, then
-twice that: only the residuals can tell, and the bound must follow them). Geometry from the twin; the
-detections are the design's BBs and tag corners projected with that noise, so each draw is fast.
+calibration (focal length, principal point and distortion: joint_solve's priors), the drill axis calibration
+(drill.json's 0.1 mm / 0.12 deg RMS tilt), the fluoroscopy BB centres and the tag corners (the noise the joint
+solve assumes, then twice that: only the residuals can tell, and the bound must follow them). Geometry from
+the twin; the detections are the design's BBs and tag corners projected with that noise, so each draw is fast.
 """
 
 import cv2
@@ -12,14 +12,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
+from drillnav.drivers.sim.scene import NAMED_VIEWS, PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, _perturbed_axis, make_scene
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.carm import CArmView
+from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, FluoroDetections
-from drillnav.registration.joint_solve import FOCAL_REL_SIGMA, PRINCIPAL_SIGMA_PX
+from drillnav.registration.joint_solve import DISTORTION_SIGMA, FOCAL_REL_SIGMA, PRINCIPAL_SIGMA_PX
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.transforms import apply, make_transform
-from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
+from drillnav.registration.video_fluoro import RELIABLE_ANGLE_DEG, predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections, VideoMarker
 
 BB_SIGMA_PX, CORNER_SIGMA_PX = 0.35, 0.3  # joint_solve's noise model
@@ -45,10 +47,11 @@ def _video(camera: PinholeCamera, marker_set, corners: dict) -> VideoDetections:
     return VideoDetections(markers=tuple(out), ignored_ids=(), image_size=(camera.width, camera.height))
 
 
-def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False):
+def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None):
     """One registration: (position error mm, angle error deg, 90 % position bound, 90 % angle bound).
 
-    ``names``: the views used (default all); ``full``: also the registration and the predicted error.
+    ``names``: the scene's views used (default all), or ``views``: CArmViews of other positioner angles;
+    ``marker_ids``: the markers placed (default all); ``full``: also the registration and the predicted error.
     """
     true = scene.true_camera
     k = true.camera_matrix.copy()
@@ -56,25 +59,29 @@ def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False):
     k[0, 0] *= f
     k[1, 1] *= f
     k[:2, 2] += rng.normal(scale=PRINCIPAL_SIGMA_PX, size=2)
-    camera = PinholeCamera(width=true.width, height=true.height, camera_matrix=k, distortion=true.distortion)
+    distortion = true.distortion.copy()
+    distortion[:5] += rng.normal(scale=DISTORTION_SIGMA)
+    camera = PinholeCamera(width=true.width, height=true.height, camera_matrix=k, distortion=distortion)
     perp = np.linalg.svd(TRUE_DRILL_AXIS_CAMERA.direction[None])[2][1:]  # (2, 3): the two tilt directions
     tilt = np.radians(AXIS_SIGMA_DEG) * rng.normal(size=2) @ perp
     axis = Line3D(point_mm=TRUE_DRILL_AXIS_CAMERA.point_mm + rng.normal(scale=AXIS_SIGMA_MM, size=3),
                   direction=Rotation.from_rotvec(tilt).apply(TRUE_DRILL_AXIS_CAMERA.direction))
     carm_from_drill = scene.drill_pose_towards(rng, offset_mm=5.0, tilt_deg=5.0)
-    names = list(scene.views) if names is None else names
+    if views is None:
+        views = [scene.views[n] for n in (list(scene.views) if names is None else names)]
+    placed = {i: t for i, t in scene.carm_from_marker.items() if marker_ids is None or i in marker_ids}
     dets = []
-    for n in names:
+    for view in views:
         found = []
-        for i, pose in scene.carm_from_marker.items():
+        for i, pose in placed.items():
             design = scene.marker_set.by_id(i)
-            px = scene.views[n].project(apply(pose, design.bb_centers_mm)) + rng.normal(scale=BB_SIGMA_PX * noise_scale, size=(len(design.bbs), 2))
+            px = view.project(apply(pose, design.bb_centers_mm)) + rng.normal(scale=BB_SIGMA_PX * noise_scale, size=(len(design.bbs), 2))
             bbs = tuple(DetectedBB(center_px=p, diameter_px=10.0, large=False) for p in px)
             found.append(DetectedMarker(marker_id=i, bbs=bbs, bb_index=np.arange(len(px)), ring_ellipse=((0.0, 0.0), (1.0, 1.0), 0.0), mirrored=False, identification_cost_mm=0.0))
         dets.append(FluoroDetections(markers=tuple(found), rejected=()))
-    poses = register_markers(dets, [scene.views[n] for n in names], scene.marker_set)
+    poses = register_markers(dets, views, scene.marker_set)
     corners = {i: true.project(apply(t, scene.marker_set.by_id(i).tag_corners_mm())) + rng.normal(scale=CORNER_SIGMA_PX * noise_scale, size=(4, 2))
-               for i, t in scene.camera_from_marker(carm_from_drill).items()}
+               for i, t in scene.camera_from_marker(carm_from_drill).items() if i in placed}
     video = _video(camera, scene.marker_set, corners)
     reg = register_video_to_fluoro(video, poses, scene.marker_set, camera)
     entry = scene.corridor_entry_carm_mm
@@ -91,9 +98,10 @@ def test_the_90_percent_bound_covers_about_90_percent(scene, noise_scale):
     rng = np.random.default_rng(20261129)
     a = np.array([_draw(scene, rng, noise_scale) for _ in range(DRAWS)])
     cover_pos, cover_ang = float(np.mean(a[:, 0] <= a[:, 2])), float(np.mean(a[:, 1] <= a[:, 3]))
-    # 40 draws (seeded, so the figures are fixed: 0.975 / 0.925 at the assumed noise, 0.975 / 0.975 at twice
-    # it): a true 90 % coverage lands in 0.78-0.98 with 95 % probability. The former single chi-square
-    # scaling, which also scaled the calibration prior, covered 1.0 / 1.0 here at twice the noise.
+    # 40 draws (seeded, so the figures are fixed: 0.80 / 0.875 at the assumed noise, 0.75 / 0.85 at twice it;
+    # 200 draws at the assumed noise: 0.87 / 0.90): a true 90 % coverage lands in 0.78-0.98 with 95 %
+    # probability. The former single chi-square scaling, which also scaled the calibration prior, covered
+    # 1.0 / 1.0 here at twice the noise.
     assert 0.75 <= cover_pos <= 0.975 and 0.75 <= cover_ang <= 0.975, (cover_pos, cover_ang)
     # The bound is not inflated: the typical error is about half its bound (the median of a 2-D Rayleigh is
     # 0.55 of its 90th percentile; the former scaling gave 0.34 for the position at twice the noise).
@@ -110,8 +118,46 @@ def test_single_view_with_weak_geometry_is_flagged(scene):
     assert reg.mirror_carm_from_drill is None and pe.reliable
     *_, reg, pe = _draw(scene, rng, 30.0, ["inlet"], full=True)  # ~10 px
     assert pe.angle90_deg > 3.0 and not pe.reliable
-    *_, reg, pe = _draw(scene, rng, 60.0, ["inlet"], full=True)  # ~20 px
-    assert reg.mirror_carm_from_drill is not None
-    axis = TRUE_DRILL_AXIS_CAMERA.transformed(reg.carm_from_drill)
-    mirror_deg = axis.angle_deg(TRUE_DRILL_AXIS_CAMERA.transformed(reg.mirror_carm_from_drill))
-    assert pe.angle90_deg >= mirror_deg - 0.5 and not pe.reliable  # measured with the calibrated axis, not the true one
+    mirrors = 0
+    for _ in range(4):
+        *_, reg, pe = _draw(scene, rng, 60.0, ["inlet"], full=True)  # ~20 px
+        assert not pe.reliable
+        if reg.mirror_carm_from_drill is not None:
+            mirrors += 1
+            axis = TRUE_DRILL_AXIS_CAMERA.transformed(reg.carm_from_drill)
+            mirror_deg = axis.angle_deg(TRUE_DRILL_AXIS_CAMERA.transformed(reg.mirror_carm_from_drill))
+            assert pe.angle90_deg >= mirror_deg - 0.5  # measured with the calibrated axis, not the true one
+    assert mirrors >= 1
+
+
+def test_the_twin_draws_the_axis_calibration_error_from_its_stated_distribution():
+    """drill.json's 0.12 deg is an RMS tilt, and the bound assumes a 2-D Gaussian of that RMS (90 % within
+    0.18 deg). The twin drew it at exactly 0.12 deg about a random axis (0.098 deg RMS across the drill axis,
+    never over 0.12): its errors were smaller than stated, and the bound covered 100 % of them."""
+    rng = np.random.default_rng(3)
+    tilt = np.array([_perturbed_axis(rng, TRUE_DRILL_AXIS_CAMERA).angle_deg(TRUE_DRILL_AXIS_CAMERA) for _ in range(4000)])
+    assert 0.114 <= float(np.sqrt(np.mean(tilt**2))) <= 0.126
+    # A 2-D Gaussian with 0.12 deg RMS is over 0.12 deg with probability exp(-1) = 0.37, over 0.18 with 0.10.
+    assert 0.33 <= float(np.mean(tilt > 0.12)) <= 0.41 and 0.08 <= float(np.mean(tilt > 0.182)) <= 0.12
+
+
+def test_no_large_single_view_error_goes_unflagged(scene):
+    """Single views at random positioner angles, inlet and lateral, three of the markers, BB centres and tag
+    corners three times noisier than assumed: where the depth along the beam is poorly fixed the error can
+    reach tens of degrees, and every error over 10 deg must be flagged unreliable (issue 17's bar)."""
+    rng = np.random.default_rng(17)
+    rows = []
+    for k in range(24):
+        a, b = (rng.uniform(-90, 90), rng.uniform(-25, 25)) if k % 3 == 0 else NAMED_VIEWS["inlet" if k % 3 == 1 else "lateral"]
+        view = CArmView.from_positioner(primary_deg=a, secondary_deg=b, **PAPER_CARM)
+        ids = rng.choice(sorted(scene.carm_from_marker), 3, replace=False).tolist()
+        try:
+            pos, ang, _, a90, _, pe = _draw(scene, rng, 3.0, views=[view], marker_ids=ids, full=True)
+        except DrillnavError:
+            continue
+        rows.append((ang, a90, pe.reliable))
+    a = np.array(rows, dtype=float)
+    assert len(a) >= 20
+    assert a[:, 1].max() > 10.0 and a[:, 0].max() > 10.0  # not vacuous: a weak geometry among them (28 deg, bound 28)
+    assert not np.any((a[:, 0] > 10.0) & (a[:, 2] > 0.5)), a[a[:, 0] > 10.0]
+    assert not np.any((a[:, 0] > RELIABLE_ANGLE_DEG) & (a[:, 2] > 0.5)), a[a[:, 0] > RELIABLE_ANGLE_DEG]
