@@ -284,6 +284,25 @@ def test_camera_unplugged_and_replugged_comes_back(tmp_path):
     assert not t.is_alive()
 
 
+def _page_shows_the_breach(base: str) -> None:
+    """The daemon's page in video-CT mode shows the breach verdict and its alert (skipped outside CI without Chromium)."""
+    from display_browser import launch, require_chromium
+
+    exe = require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = launch(pw, exe)
+        try:
+            page = browser.new_page(viewport={"width": 1600, "height": 1000}, bypass_csp=True)  # the test's own probes are evaluated
+            page.goto(f"{base}/?mode=ct")
+            page.wait_for_function("window.drillnav.ctDrawn && window.drillnav.ctDrawn.breach === true && !window.drillnav.ctDrawn.stale"
+                                   " && window.drillnav.alerts.some(a => a[1].startsWith('BREACH'))", timeout=30000)
+            assert page.inner_text("#verdict").startswith("BREACH (AIIS-PSIS)")
+        finally:
+            browser.close()
+
+
 @pytest.mark.timeout(600)  # the twin's up-front build (scene and CT) takes minutes on a loaded machine
 def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     """The whole daemon in a subprocess: twin camera, C-arm shots through the watched folder, axis on zenoh, SIGTERM."""
@@ -293,7 +312,7 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
     cfg = tmp_path / "drillnav.toml"
     cfg.write_text(
         f'twin = true\n[zenoh]\nlisten = ["{ep}"]\n[api]\nport = {api_port}\ntoken = "test-token-1-of-16-chars"\n'
-        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = {scp_port}\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\n'
+        f'[dicom]\nwatch_folder = "{tmp_path / "in"}"\nscp_port = {scp_port}\n[recording]\nfolder = "{tmp_path / "rec"}"\n[twin_scene]\nseed = 5\nct_voxel_mm = 2.0\naim_off_mm = 20\n'
         f'[calibration]\nfolder = "{tmp_path / "cal"}"\n'
         # 10 frames a second are plenty for what this checks (10 axes in sequence, a 5 fps live calibration capture) and
         # leave the CPU to the CT registration worker this test waits on (at 30 fps the frame path takes most of a core).
@@ -368,7 +387,11 @@ def test_daemon_on_the_twin_streams_the_axis(tmp_path):
         truth = make_scene(seed=5, render=False)
         entry_ct = np.asarray(CORRIDORS[0].entry_mm)
         assert np.linalg.norm(apply(np.asarray(c["carm_from_ct"]), entry_ct) - apply(truth.carm_from_ct, entry_ct)) < 1.0
-        assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and isinstance(c["conformance"]["breach"], bool)
+        # The twin aims 20 mm beside the planned corridor ([twin_scene] aim_off_mm): the verdict is a breach, on the bus and on
+        # the surgeon's page (headless Chromium on the daemon's own page, video-CT mode).
+        assert c["frame_id"] == "ct" and c["conformance"]["trajectory"] == "AIIS-PSIS" and c["conformance"]["breach"] is True, c["conformance"]
+        assert c["conformance"]["axis_to_planned_entry_mm"] > 15.0
+        _page_shows_the_breach(base)
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
