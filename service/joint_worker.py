@@ -167,7 +167,9 @@ class JointSolveWorker:
             if not p.late:
                 self.counters.late += 1
                 self._pending = p = replace(p, late=True)
-            if stamp_ns > p.at_ns + self.adopt_after_ns + self.give_up_ns:
+            # Stuck, not starting: a new process takes seconds to import on a loaded machine, and replacing it then
+            # would only start another.
+            if stamp_ns > p.at_ns + self.adopt_after_ns + self.give_up_ns and self._started is not None and self._started.done():
                 self._pending = None
                 self._replace_pool()
                 self.counters.failed += 1
