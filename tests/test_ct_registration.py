@@ -7,7 +7,6 @@ import pytest
 
 from drillnav.drivers.sim import anatomy
 from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
-from drillnav.drivers.sim.scene import make_scene
 from drillnav.drivers.sim.xray import add_ellipsoids, pixel_rays
 from drillnav.registration.conformance import SurfaceDistance, conformance_along, perturbed_axes
 from drillnav.registration.ct_registration import FluoroShot, gradient_correlation, register_ct, rotation_centre_mm
@@ -18,6 +17,8 @@ from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform, rotation_angle_deg
 from drillnav.registration.volume import Volume
 
+from twin_scenes import rendered_scene
+
 
 @pytest.fixture(scope="module")
 def ct():
@@ -26,7 +27,7 @@ def ct():
 
 @pytest.fixture(scope="module")
 def scene():
-    return make_scene(seed=5, views="inlet,outlet")
+    return rendered_scene(5, "inlet,outlet")  # the one tests/test_ct_tracker.py registers
 
 
 def test_drr_of_a_uniform_box_is_mu_times_chord():
