@@ -100,7 +100,8 @@ def run(seeds: int, first_seed: int, poses: int, deg: Degradations, *, patient=N
                                      if p.marker_id in subset)
                 for carm_from_drill, seen in frames:
                     video = dataclasses.replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
-                    key = (pair if len(vs) == 2 else f"{pair}:{vs[0]}", len(vs))
+                    # One view: named by the view (a random pair's angles differ per seed: pooled as "random:one").
+                    key = (pair if len(vs) == 2 else f"{pair}:{'one' if pair == 'random' else vs[0]}", len(vs))
                     tried[key] = tried.get(key, 0) + 1
                     try:
                         reg = register_video_to_fluoro(video, marker_poses, scene.marker_set, scene.calibrated_camera)
