@@ -14,7 +14,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# One BLAS thread, set before anything loads numpy (its OpenBLAS reads this once): drillnav's matrices are small and
+# many (6x6 normal matrices, least squares over a few hundred residuals), and OpenBLAS's threads spun on both cores for
+# each call. Measured: the joint solve + tag location took 95 ms of CPU for 48 ms of wall time with 2 threads, 29 ms
+# and 25 ms with one. The worker processes (joint solve, CT) inherit it. The DRR's threads are numba's, not BLAS's. A
+# site that wants otherwise sets the variable itself.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from collections.abc import Sequence
 
 from drillnav.registration.errors import DrillnavError

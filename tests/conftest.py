@@ -1,8 +1,11 @@
 """Shared test plumbing: ports the OS hands out, so two suites on one machine never meet."""
 
+import os
 import socket
 import sys
 from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `drillnav` sets it (service/cli.py): small matrices, threads only spin
 
 sys.path.insert(0, str(Path(__file__).parent))
 
