@@ -378,7 +378,7 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
         "- **One or two markers in common** register (a tag's corners fix the marker's pose in D, its BBs its pose in C),",
         "  starting from the marker poses instead of Horn, with no outlier rejection below 3; refused only with no marker",
         "  in common or under 4 BBs in all ([identity and error](identity_and_error.md#one-or-two-markers-in-common)).",
-        "- **The predicted error**: the solve's covariance (BB and corner noise each re-estimated from its own residuals, variance components; camera prior 0.3 % / 1.5 px) propagated to the axis with",
+        "- **The predicted error**: the solve's covariance (BB and corner noise each re-estimated from its own residuals, variance components; camera priors at their calibration size: focal 0.2 %, principal point 0.8 px, and the distortion coefficients, `DISTORTION_SIGMA` in `registration/joint_solve.py`) propagated to the axis with",
         "  the drill axis's calibration uncertainty; 90 % and 95 % bounds of the position at the working point and of the",
         "  angle; `reliable` is False when a 90 % bound is over its limit (`RELIABLE_POSITION_MM`, `RELIABLE_ANGLE_DEG`,",
         "  3 mm / 3 deg, keywords of `predicted_axis_error`).",

@@ -44,7 +44,7 @@ N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, 
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
 # length (relative, fx and fy together), principal point per axis, and the distortion coefficients. The
 # distortion's error is a parameter of its own: it used to act only through a focal / principal prior widened
-# to 0.3 % / 1.5 px, a fudge tuned on 4 seeds that, measured again on 32 (benchmarks/coverage.py), put the
+# to 0.3 % / 1.5 px, a fudge tuned on 4 seeds that, measured again on 32 (benchmarks/bound_coverage.py), put the
 # covariance's position term at 1.3-1.5 times the pose's actual error (docs/identity_and_error.md).
 FOCAL_REL_SIGMA = 0.002
 PRINCIPAL_SIGMA_PX = 0.8

@@ -10,7 +10,7 @@ actual error split the same way (the twin knows the truth: the calibrated axis c
 against the true axis carried by the registered pose).
 
 Detections are cached (``--cache``), so the predictor can be re-scored after a change without re-rendering.
-Run: nice -n 10 .venv/bin/python benchmarks/coverage.py [--seeds 6 --first-seed 8100 --poses 2] [--degradations all]
+Run: nice -n 10 .venv/bin/python benchmarks/bound_coverage.py [--seeds 6 --first-seed 8100 --poses 2] [--degradations all]
 Ends with one JSON line.
 """
 
