@@ -285,6 +285,18 @@ def _horn(ids, vids, poses):
         raise MarkersNotFound(f"markers usable for registration are degenerate: {exc}") from None
 
 
+def _psd_root(cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A matrix ``L`` with ``L @ L.T == cov`` for a symmetric positive semi-definite ``cov`` (n, n).
+
+    From its eigen-decomposition, negative round-off eigenvalues taken as 0: a covariance that is singular or
+    nearly so (a direction the data do not fix, priors near zero) is sampled along the directions it has, where a
+    Cholesky factorisation raised ``LinAlgError`` and the frame had no axis.
+    """
+    sym = 0.5 * (cov + cov.T)
+    w, v = np.linalg.eigh(sym)
+    return v * np.sqrt(np.clip(w, 0.0, None))
+
+
 def predicted_axis_error(
     video: VideoDetections,
     marker_poses: tuple[MarkerPose, ...],
@@ -325,8 +337,7 @@ def predicted_axis_error(
     if registration.covariance_drill is not None:
         # A covariance is cheap to sample: enough draws for steady 90th/95th percentiles.
         n = max(samples, 512)
-        chol = np.linalg.cholesky(registration.covariance_drill + 1e-12 * np.eye(6))
-        delta = rng.normal(size=(n, 6)) @ chol.T
+        delta = rng.normal(size=(n, 6)) @ _psd_root(registration.covariance_drill).T
         r = Rotation.from_rotvec(delta[:, :3]).as_matrix()
         pivot = registration.pivot_carm_mm
         carm_from_drill = np.repeat(registration.carm_from_drill[None], n, axis=0)

@@ -103,6 +103,23 @@ def test_one_view_joint_solve_and_its_bound(scene, solved):
         assert not tight.reliable
 
 
+def test_a_singular_covariance_still_gives_a_bound(scene, solved):
+    """A covariance the data leave singular (a direction fixed exactly, or round-off below zero) is sampled along the
+    directions it has: a bound, not a LinAlgError and a frame without an axis."""
+    dets, _, video = solved
+    poses = register_markers(dets, list(scene.views.values()), scene.marker_set)
+    reg = register_video_to_fluoro(video, poses, scene.marker_set, scene.calibrated_camera)
+    cov = reg.covariance_drill.copy()
+    cov[0, :] = cov[:, 0] = 0.0   # one rotation fixed exactly: singular,
+    cov[0, 0] = -1e-10            # and round-off below zero there
+    entry = scene.corridor_entry_carm_mm
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(cov + 1e-12 * np.eye(6))   # what the bound was drawn from before
+    pe = predicted_axis_error(video, poses, replace(reg, covariance_drill=cov), scene.calibrated_axis_drill, working_point_carm_mm=entry)
+    full = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
+    assert np.isfinite([pe.position90_mm, pe.angle90_deg]).all() and 0 < pe.position90_mm <= 1.5 * full.position90_mm
+
+
 def test_ring_cut_by_the_field_edge_keeps_its_bbs(scene, solved):
     """A ring whose centre is in the field but whose arc crosses the edge is still identified and posed."""
     dets, _, _ = solved
