@@ -55,6 +55,18 @@ def _pairs(rng: np.random.Generator) -> dict[str, str]:
             "random": f"{a:.0f}:{rng.uniform(-25, 25):.0f},{np.clip(b, -120, 120):.0f}:{rng.uniform(-25, 25):.0f}"}
 
 
+def camera_frames(scene, *, seed: int, k: int, poses: int) -> list:
+    """``poses`` freehand drill poses of the study (seeded by seed and view pair k) and what the camera locates in each:
+    [(true carm_from_drill, VideoDetections)]."""
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
+    frames = []
+    for _ in range(poses):
+        pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
+        frames.append((pose, locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose))))
+    return frames
+
+
 def load_patient(ct_path: Path) -> VoxelAnatomy:
     """The real CT as the patient, with the L1 trajectory of docs/examples/chest-plan.json."""
     from drillnav.drivers.ct_volume import read_ct
@@ -103,13 +115,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                 shots.fluoro[(seed, pair, fluoro_key)] = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in names}
             dets = shots.fluoro[(seed, pair, fluoro_key)]
             if (seed, pair, video_key) not in shots.video:
-                locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
-                pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
-                frames = []
-                for _ in range(poses):
-                    pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
-                    frames.append((pose, locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose))))
-                shots.video[(seed, pair, video_key)] = frames
+                shots.video[(seed, pair, video_key)] = camera_frames(scene, seed=seed, k=k, poses=poses)
             frames = shots.video[(seed, pair, video_key)]
             for vs in [names] + [[n] for n in names]:
                 marker_poses = register_markers([dets[n] for n in vs], [scene.views[n] for n in vs], scene.marker_set)

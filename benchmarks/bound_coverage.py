@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from accuracy import CT, _pairs, load_patient  # noqa: E402  (the study's view pairs and patient)
+from accuracy import CT, _pairs, camera_frames, load_patient  # noqa: E402  (the study's view pairs and patient)
 
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
@@ -35,7 +35,6 @@ from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
-from drillnav.registration.video_markers import VideoMarkerLocator
 
 FIELDS = ("pos_mm", "ang_deg", "b90_pos_mm", "b90_ang_deg", "reliable", "cov_pos_mm", "cov_ang_deg", "cal_pos_mm", "cal_ang_deg",
           "err_pose_pos_mm", "err_pose_ang_deg", "err_cal_pos_mm", "err_cal_ang_deg", "mirror")
@@ -50,12 +49,7 @@ def _shots(seed: int, k: int, pair: str, views: str, poses: int, deg: Degradatio
         return scene, dets, frames
     image_rng = np.random.default_rng([seed, k, 1])
     dets = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views}
-    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
-    pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
-    frames = []
-    for _ in range(poses):
-        pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
-        frames.append((pose, locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose))))
+    frames = camera_frames(scene, seed=seed, k=k, poses=poses)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps((dets, frames)))
