@@ -19,20 +19,11 @@ from drillnav.service.bus import open_session
 from drillnav.service.node import RegistrationNode
 from drillnav.service.replay import iter_recording
 
-from conftest import free_endpoint
+from conftest import free_endpoint, wait_for
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 FPS = 20.0
 MAX_GAP_S = 0.2
-
-
-def wait_for(cond, timeout_s):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
 
 
 class Rig:

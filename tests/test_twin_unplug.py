@@ -20,18 +20,10 @@ from drillnav.service.bus import open_session
 from drillnav.service.daemon import Daemon
 from drillnav.service.settings import SettingsError, load_settings
 
+from conftest import wait_for
 from test_serve_lifecycle import config, settings_of
 
 UNPLUG_EVERY_S, UNPLUG_S, RETRY_S = 8.0, 2.0, 0.5
-
-
-def wait_for(cond, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return bool(cond())
 
 
 def test_unplug_and_plug_raise_the_webcam_error_on_read_and_on_open():
