@@ -21,7 +21,7 @@ import pydicom
 from numpy.typing import NDArray
 from pydicom.errors import InvalidDicomError
 
-from drillnav.registration.carm import CArmView
+from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
 from drillnav.registration.errors import DrillnavError
 from drillnav.schemas.projection import read_projection
 
@@ -60,6 +60,20 @@ class FluoroImage:
     view_name: str  # from the positioner angles (e.g. "p+0s-25"), else the file name
 
 
+def _intensifier_sigma_px(ds) -> float:
+    """The distortion prior of an image from an image intensifier, 0 from a flat panel.
+
+    An intensifier says so in X-Ray Receptor Type (0018,9420) = IMG_INTENSIFIER (enhanced XA/XRF) or, in the
+    older XA/RF modules, by its Intensifier Size (0018,1162). Its images carry pincushion and S distortion
+    unless dewarped, which the joint solve then estimates per view (:data:`IMAGE_INTENSIFIER_DISTORTION_PX`).
+    A calibrated projection JSON says it itself (``distortion_sigma_px``; 0 for a dewarped image).
+    """
+    receptor = str(getattr(ds, "XRayReceptorType", "") or "").upper()
+    if receptor == "IMG_INTENSIFIER" or (not receptor and getattr(ds, "IntensifierSize", None) not in (None, "")):
+        return IMAGE_INTENSIFIER_DISTORTION_PX
+    return 0.0
+
+
 def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> tuple[CArmView, str]:
     if projection is not None:
         view = read_projection(projection)
@@ -81,6 +95,7 @@ def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> 
         raise DicomGeometryMissing(f"{path.name}: PatientPosition {position} is not supported without a calibrated projection matrix (supine HFS/FFS only)")
     try:
         view = CArmView.from_positioner(
+            distortion_sigma_px=_intensifier_sigma_px(ds),
             primary_deg=float(ds.PositionerPrimaryAngle),
             secondary_deg=float(ds.PositionerSecondaryAngle),
             source_to_detector_mm=float(ds.DistanceSourceToDetector),

@@ -25,6 +25,8 @@ from .transforms import check_points, invert, make_transform
 
 __all__ = [
     "CArmView",
+    "IMAGE_INTENSIFIER_DISTORTION_PX",
+    "intensifier_shift_px",
     "positioner_rotation",
     "triangulate",
 ]
@@ -54,6 +56,27 @@ def positioner_rotation(primary_deg: float, secondary_deg: float) -> NDArray[np.
     return np.stack([col, row, beam])
 
 
+# An image intensifier's electron optics bend the image: pincushion (radial, growing with r^3) and S distortion
+# (the earth's and the room's magnetic field twisting it, tangential, changing with the C-arm's orientation). An
+# uncorrected 9-inch intensifier moves a point at the field's edge by a few mm, 1-2 % of the radius; 10 px
+# (3 mm at 0.3 mm/px) at the field's corner is the 1-sigma size assumed for each of the two terms when a view
+# comes from an intensifier without a dewarp calibration. A flat panel (and a dewarped image) has none.
+IMAGE_INTENSIFIER_DISTORTION_PX = 10.0
+
+
+def intensifier_shift_px(uv_px: NDArray[np.float64], center_px: NDArray[np.float64], corner_radius_px: float,
+                         coefficients_px: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Where an image intensifier moves ideal pixels (..., 2): the shift (..., 2), px.
+
+    coefficients_px : (..., 2) pincushion (radial) and S (tangential) shifts at ``corner_radius_px`` from
+        ``center_px``; both grow with the cube of the radius, the leading terms of an intensifier's distortion.
+    """
+    d = uv_px - center_px
+    r2 = np.sum(d * d, axis=-1, keepdims=True) / corner_radius_px**3
+    perp = np.stack([-d[..., 1], d[..., 0]], axis=-1)
+    return (coefficients_px[..., :1] * d + coefficients_px[..., 1:2] * perp) * r2
+
+
 @dataclass(frozen=True, kw_only=True)
 class CArmView:
     """One fluoroscopy view: its projection matrix and detector size.
@@ -66,12 +89,18 @@ class CArmView:
         Detector size in pixels.
     pixel_spacing_mm : tuple of float
         (row spacing, column spacing) at the detector, mm (DICOM Imager Pixel Spacing order).
+    distortion_sigma_px : float
+        1-sigma size, in pixels at the field's corner, of the detector's uncorrected distortion
+        (:func:`intensifier_shift_px`): 0 for a flat panel or a dewarped image (the projection is exact);
+        :data:`IMAGE_INTENSIFIER_DISTORTION_PX` for an image intensifier without a dewarp calibration.
+        The joint solve then estimates each such view's distortion, held by a prior of this size.
     """
 
     projection_matrix: NDArray[np.float64]
     rows: int
     columns: int
     pixel_spacing_mm: tuple[float, float]
+    distortion_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
         p = np.asarray(self.projection_matrix, dtype=np.float64)
@@ -84,6 +113,8 @@ class CArmView:
         ps = tuple(float(v) for v in self.pixel_spacing_mm)
         if len(ps) != 2 or min(ps) <= 0:
             raise ValueError(f"pixel_spacing_mm must be two positive numbers, got {self.pixel_spacing_mm}")
+        if not (np.isfinite(self.distortion_sigma_px) and self.distortion_sigma_px >= 0):
+            raise ValueError(f"distortion_sigma_px must be a finite number >= 0, got {self.distortion_sigma_px}")
         object.__setattr__(self, "projection_matrix", p)
         object.__setattr__(self, "pixel_spacing_mm", ps)
 
@@ -99,6 +130,7 @@ class CArmView:
         rows: int,
         columns: int,
         principal_point_px: tuple[float, float] | None = None,
+        distortion_sigma_px: float = 0.0,
     ) -> "CArmView":
         """View from DICOM positioner attributes (PS3.3 C.8.7.5).
 
@@ -120,7 +152,7 @@ class CArmView:
             principal_point_px = ((columns - 1) / 2.0, (rows - 1) / 2.0)
         k = np.array([[sdd / ps_col, 0.0, principal_point_px[0]], [0.0, sdd / ps_row, principal_point_px[1]], [0.0, 0.0, 1.0]])
         p = k @ np.hstack([r, t[:, None]])
-        return cls(projection_matrix=p, rows=rows, columns=columns, pixel_spacing_mm=(ps_row, ps_col))
+        return cls(projection_matrix=p, rows=rows, columns=columns, pixel_spacing_mm=(ps_row, ps_col), distortion_sigma_px=distortion_sigma_px)
 
     def binned(self, factor: int) -> "CArmView":
         """The same view on a detector binned ``factor`` x ``factor`` (multi-resolution).
@@ -137,6 +169,7 @@ class CArmView:
             rows=self.rows // f,
             columns=self.columns // f,
             pixel_spacing_mm=(self.pixel_spacing_mm[0] * f, self.pixel_spacing_mm[1] * f),
+            distortion_sigma_px=self.distortion_sigma_px / f,
         )
 
     # -- decomposition -----------------------------------------------------------------
@@ -177,6 +210,16 @@ class CArmView:
         return float(k[0, 0] * self.pixel_spacing_mm[1])
 
     # -- projection ----------------------------------------------------------------------
+    @property
+    def center_px(self) -> NDArray[np.float64]:
+        """(2,) the detector's centre (column, row), about which an intensifier distorts."""
+        return np.array([(self.columns - 1) / 2.0, (self.rows - 1) / 2.0])
+
+    @property
+    def corner_radius_px(self) -> float:
+        """Distance from the detector's centre to its corner pixel, px."""
+        return float(np.hypot((self.columns - 1) / 2.0, (self.rows - 1) / 2.0))
+
     def project(self, points_carm_mm: ArrayLike) -> NDArray[np.float64]:
         """Project points (N, 3) in frame C, mm, to pixels (N, 2) (column, row)."""
         p = check_points(points_carm_mm)

@@ -34,11 +34,12 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
+from .carm import intensifier_shift_px
 from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
-__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA"]
+__all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -76,6 +77,8 @@ class JointSolution:
     reduced_chi2: float
     converged: bool
     chi2: float = float("nan")  # sum of the squared normalised residuals
+    # ((view, (2,) pincushion and S shift at the field's corner, px), ...) of each intensifier view estimated.
+    detector_distortion_px: tuple = ()
 
 
 def perturb_about(delta: NDArray[np.float64], target_from_source: NDArray[np.float64], pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -136,7 +139,7 @@ def joint_solve(
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     clean = max(sol.marker_chi.values()) <= outlier_chi and all(
-        len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px)[k][1]) == len(o[1])
+        len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px)[k][1]) == len(o[1])
         for i in ids for k, o in enumerate(observations[i]))
     if clean:
         return sol
@@ -157,7 +160,7 @@ def joint_solve(
             # A BB merged with the K-wire or a neighbour's BB, or matched to the wrong design BB, spoils
             # its marker; drop such single BBs (once).
             trimmed = True
-            kept = {i: _trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px) for i in ids}
+            kept = {i: _trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px) for i in ids}
             if sum(len(o[1]) for i in ids for o in kept[i]) < sum(len(o[1]) for i in ids for o in observations[i]):
                 observations = kept
                 continue
@@ -196,11 +199,28 @@ def _distortion_change(xy: NDArray[np.float64], dk: NDArray[np.float64]) -> NDAr
     return np.stack([x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x), y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y], axis=-1)
 
 
-def _trim(observations, carm_from_marker, max_px: float) -> tuple:
+def _distorted_views(ids, observations) -> list:
+    """The distinct views (in order of first use) whose detector distortion the solve estimates."""
+    views: list = []
+    for i in ids:
+        for view, _, _ in observations[i]:
+            if getattr(view, "distortion_sigma_px", 0.0) > 0 and not any(v is view for v in views):
+                views.append(view)
+    return views
+
+
+def project_distorted(view, points_carm_mm: NDArray[np.float64], distortion: tuple = ()) -> NDArray[np.float64]:
+    """Pixels (N, 2) of points (N, 3) in ``view``, moved by the view's estimated intensifier distortion if any."""
+    uv = view.project(points_carm_mm)
+    coef = next((c for v, c in distortion if v is view), None)
+    return uv if coef is None else uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, coef)
+
+
+def _trim(observations, carm_from_marker, max_px: float, distortion: tuple = ()) -> tuple:
     """The observations without BBs farther than ``max_px`` from their projection (at least 3 kept per view)."""
     out = []
     for view, obj, img in observations:
-        err = np.linalg.norm(view.project(apply(carm_from_marker, obj)) - img, axis=1)
+        err = np.linalg.norm(project_distorted(view, apply(carm_from_marker, obj), distortion) - img, axis=1)
         keep = err <= max_px
         if keep.sum() < 3:
             keep = err <= np.sort(err)[min(2, len(err) - 1)]
@@ -223,13 +243,26 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             f_marker.append(np.full(len(obj), k))
             f_p.append(np.repeat(view.projection_matrix[None], len(obj), axis=0))
     f_obj_a, f_img_a, f_mk, f_pa = np.concatenate(f_obj), np.concatenate(f_img), np.concatenate(f_marker), np.concatenate(f_p)
+    # An image intensifier's view (distortion_sigma_px > 0) gets its own distortion (pincushion, S: 2 px
+    # coefficients at the field's corner) held by a prior of that size: the camera's constellation of markers,
+    # known in 3D, shows it (markers at different radii magnified differently), and the covariance carries
+    # what it does not show. A flat panel's view adds nothing.
+    dist_views = _distorted_views(ids, observations)
+    n_dv = len(dist_views)
+    f_dv = np.concatenate([np.full(len(obj), next((j for j, v in enumerate(dist_views) if v is view), -1))
+                           for i in ids for view, obj, _ in observations[i]])
+    f_center = np.concatenate([np.repeat(view.center_px[None], len(obj), axis=0) for i in ids for view, obj, _ in observations[i]])
+    f_corner_r = np.concatenate([np.full(len(obj), view.corner_radius_px) for i in ids for view, obj, _ in observations[i]])
+    dist_sigma = np.repeat([v.distortion_sigma_px for v in dist_views], 2).astype(np.float64)
+    f_has = f_dv >= 0
     c_obj = np.concatenate([marker_set.by_id(i).tag_corners_mm() for i in ids])
     c_img = np.concatenate([np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids])
     c_mk = np.repeat(np.arange(m), 4)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
-    n_par = 6 + 6 * m + N_INTRINSICS
+    n_par = 6 + 6 * m + N_INTRINSICS + 2 * n_dv
+    i_dist = 6 + 6 * m + N_INTRINSICS
 
     def residuals(xs):
         """Normalised residuals (P, R) of P parameter vectors (P, n_par) at once."""
@@ -243,17 +276,21 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         t_m = np.einsum("pmij,mj->pmi", rm, poses0[:, :3, 3] - pivots) + pivots + dm[..., 3:]
         pc = np.einsum("pnij,nj->pni", rot_m[:, f_mk], f_obj_a) + t_m[:, f_mk]
         h = np.einsum("nij,pnj->pni", f_pa[:, :, :3], pc) + f_pa[:, :, 3]
-        rf = (h[..., :2] / h[..., 2:3] - f_img_a) / fluoro_sigma_px
+        uv = h[..., :2] / h[..., 2:3]
+        if n_dv:
+            coef = xs[:, i_dist:].reshape(n, n_dv, 2)[:, f_dv[f_has]]
+            uv[:, f_has] += intensifier_shift_px(uv[:, f_has], f_center[f_has], f_corner_r[f_has][:, None], coef)
+        rf = (uv - f_img_a) / fluoro_sigma_px
         cc = np.einsum("pnij,nj->pni", rot_m[:, c_mk], c_obj) + t_m[:, c_mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
         xy0 = cd[..., :2] / cd[..., 2:3]
-        intr = xs[:, 6 + 6 * m :]
+        intr = xs[:, 6 + 6 * m : i_dist]
         xy = camera.distort_normalized(xy0.reshape(-1, 2)).reshape(n, -1, 2) + _distortion_change(xy0, intr[:, 3:])
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
         v = fy0 * s * xy[..., 1] + cy0 + intr[:, 2:3]
         rc = (np.stack([u, v], axis=-1) - c_img) / corner_sigma_px
-        prior = intr / prior_sigma
+        prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
@@ -262,22 +299,23 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
     # sparse differences, which evaluate the groups one call at a time).
     h = 1e-6
-    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), np.full(N_INTRINSICS, -1)])
+    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), np.full(N_INTRINSICS + 2 * n_dv, -1)])
     in_marker = np.nonzero(row_marker >= 0)[0]
-    steps = np.zeros((6 + N_INTRINSICS + 6, n_par))
+    n_glob = N_INTRINSICS + 2 * n_dv  # intrinsics and the views' distortion: one column each
+    steps = np.zeros((6 + n_glob + 6, n_par))
     steps[np.arange(6), np.arange(6)] = h
-    steps[6 + np.arange(N_INTRINSICS), 6 + 6 * m + np.arange(N_INTRINSICS)] = h
+    steps[6 + np.arange(n_glob), 6 + 6 * m + np.arange(n_glob)] = h
     for k in range(6):
-        steps[6 + N_INTRINSICS + k, 6 + k : 6 + 6 * m : 6] = h
+        steps[6 + n_glob + k, 6 + k : 6 + 6 * m : 6] = h
 
     def jacobian(x):
         f = residuals(np.vstack([x, x + steps]))
         diff = (f[1:] - f[0]) / h
         jac = np.zeros((f.shape[1], n_par))
         jac[:, :6] = diff[:6].T
-        jac[:, 6 + 6 * m :] = diff[6 : 6 + N_INTRINSICS].T
+        jac[:, 6 + 6 * m :] = diff[6 : 6 + n_glob].T
         for k in range(6):
-            jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[6 + N_INTRINSICS + k, in_marker]
+            jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[6 + n_glob + k, in_marker]
         return jac
 
     sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)
@@ -288,6 +326,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         return drill, rot, t, x[6 + 6 * m :]
 
     drill, rot, t, _ = unpack(sol.x)
+    distortion = tuple((view, sol.x[i_dist + 2 * j : i_dist + 2 * j + 2].copy()) for j, view in enumerate(dist_views))
     res = sol.fun
     rf, rc = res[:n_f].reshape(-1, 2), res[n_f : n_f + n_c].reshape(-1, 2)
     chi = {}
@@ -315,4 +354,5 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         reduced_chi2=red,
         chi2=float(np.sum(res**2)),
         converged=bool(sol.success),
+        detector_distortion_px=distortion,
     )

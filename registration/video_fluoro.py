@@ -86,6 +86,9 @@ class DrillRegistration:
     # The marker poses registered: those given, with the BBs claimed through the video's identities
     # (:mod:`.video_claims`) and the markers found that way; empty without the joint solve.
     marker_poses: tuple = ()
+    # ((view, (2,) pincushion and S shift at the field's corner, px), ...): each image intensifier view's
+    # distortion as the joint solve estimated it (:func:`.joint_solve.project_distorted` draws with it).
+    detector_distortion_px: tuple = ()
 
 
 def register_video_to_fluoro(
@@ -183,7 +186,7 @@ def register_video_to_fluoro(
         carm_from_marker.update(sol.carm_from_marker)
         covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
         extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
-                     mirror_carm_from_drill=alternative)
+                     mirror_carm_from_drill=alternative, detector_distortion_px=sol.detector_distortion_px)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}

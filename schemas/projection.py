@@ -21,6 +21,7 @@ def view_to_json(view: CArmView) -> dict[str, Any]:
         "rows": view.rows,
         "columns": view.columns,
         "pixel_spacing_mm": list(view.pixel_spacing_mm),
+        **({"distortion_sigma_px": float(view.distortion_sigma_px)} if view.distortion_sigma_px > 0 else {}),
     }
 
 
@@ -31,7 +32,8 @@ def view_from_json(doc: Any, *, source: str = "projection") -> CArmView:
         where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
         raise ValueError(f"{source}: invalid at {where}: {exc.message}") from None
     try:
-        return CArmView(projection_matrix=doc["projection_matrix"], rows=int(doc["rows"]), columns=int(doc["columns"]), pixel_spacing_mm=tuple(doc["pixel_spacing_mm"]))
+        return CArmView(projection_matrix=doc["projection_matrix"], rows=int(doc["rows"]), columns=int(doc["columns"]), pixel_spacing_mm=tuple(doc["pixel_spacing_mm"]),
+                        distortion_sigma_px=float(doc.get("distortion_sigma_px", 0.0)))
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{source}: {exc}") from None
 

@@ -60,7 +60,8 @@ def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None, pl
         a, b = scene.view_angles[name]
         write_xa(out / "fluoro" / f"{name}.dcm", scene.fluoro_log[name], primary_deg=a, secondary_deg=b,
                  source_to_detector_mm=PAPER_CARM["source_to_detector_mm"], source_to_isocenter_mm=PAPER_CARM["source_to_isocenter_mm"],
-                 pixel_spacing_mm=PAPER_CARM["pixel_spacing_mm"], study_uid=study, series_uid=series, instance_number=n)
+                 pixel_spacing_mm=PAPER_CARM["pixel_spacing_mm"], study_uid=study, series_uid=series, instance_number=n,
+                 image_intensifier=scene.degradations.ii_distortion)
         write_projection(out / "fluoro" / f"{name}.json", view)
     write_camera_calibration(out / "camera.json", scene.calibrated_camera, rms_px=0.21, per_view_errors_px=[], label=f"twin seed {scene.seed}")
     write_drill_calibration(out / "drill.json", scene.calibrated_axis_drill, method="twin (true axis with calibration error)", residual_mm=0.1, residual_deg=0.12, label=f"twin seed {scene.seed}")

@@ -223,7 +223,8 @@ class TwinCArm:
         tmp = self.folder / f".{view_name}-{self._n}.dcm.part"
         write_xa(tmp, image, primary_deg=a, secondary_deg=b, source_to_detector_mm=PAPER_CARM["source_to_detector_mm"],
                  source_to_isocenter_mm=PAPER_CARM["source_to_isocenter_mm"], pixel_spacing_mm=PAPER_CARM["pixel_spacing_mm"],
-                 study_uid="1.2.826.0.1.3680043.8.498.1", series_uid="1.2.826.0.1.3680043.8.498.2", instance_number=self._n)
+                 study_uid="1.2.826.0.1.3680043.8.498.1", series_uid="1.2.826.0.1.3680043.8.498.2", instance_number=self._n,
+                 image_intensifier=self.scene.degradations.ii_distortion)
         final = self.folder / f"{view_name}-{self._n:04d}.dcm"
         if self.send_to is not None:
             from drillnav.drivers.dicom_scp import send_files

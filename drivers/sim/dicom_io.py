@@ -31,8 +31,13 @@ def write_xa(
     series_uid: str,
     instance_number: int,
     patient_id: str = "TWIN",
+    image_intensifier: bool = False,
 ) -> Path:
-    """Write one single-frame XA image; returns the path."""
+    """Write one single-frame XA image; returns the path.
+
+    ``image_intensifier``: the C-arm's receptor is an (uncorrected) image intensifier, which the image says in
+    X-Ray Receptor Type (0018,9420) and Intensifier Size (0018,1162); else a flat panel (DIGITAL_DETECTOR).
+    """
     path = Path(path)
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = XRayAngiographicImageStorage
@@ -55,6 +60,9 @@ def write_xa(
     ds.DistanceSourceToDetector = f"{source_to_detector_mm:.1f}"
     ds.DistanceSourceToPatient = f"{source_to_isocenter_mm:.1f}"
     ds.ImagerPixelSpacing = [f"{pixel_spacing_mm[0]:.4f}", f"{pixel_spacing_mm[1]:.4f}"]
+    ds.XRayReceptorType = "IMG_INTENSIFIER" if image_intensifier else "DIGITAL_DETECTOR"
+    if image_intensifier:
+        ds.IntensifierSize = f"{max(image_log.shape) * pixel_spacing_mm[0]:.1f}"
     ds.KVP = "75"
     ds.ExposureTime = "10"
     ds.XRayTubeCurrent = "5"

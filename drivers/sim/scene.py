@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.carm import CArmView
+from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
 from drillnav.registration.line import Line3D
 from drillnav.registration.markers import MarkerDesign, MarkerSet, default_marker_set
 from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform
@@ -367,7 +367,11 @@ def make_scene(
     manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}
     true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=76.0, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
     carm_from_drill = _drill_pose(rng, target, carm_from_ct, offset_mm=3.0, tilt_deg=3.0, standoff_mm=290.0)
-    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, **PAPER_CARM) for name, (a, b) in view_angles.items()}
+    # The twin's C-arm with ii_distortion is an image intensifier without a dewarp calibration: its views say so
+    # (as its DICOM does, X-Ray Receptor Type), and the product estimates their distortion.
+    ii_sigma = IMAGE_INTENSIFIER_DISTORTION_PX if degradations.ii_distortion else 0.0
+    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, distortion_sigma_px=ii_sigma, **PAPER_CARM)
+                   for name, (a, b) in view_angles.items()}
     scene = Scene(
         seed=seed,
         marker_set=used,
