@@ -247,6 +247,8 @@ class Projection:
     rows: int = Field(ge=1)
     columns: int = Field(ge=1)
     pixel_spacing_mm: tuple[PositiveFloat, PositiveFloat] = Field(description="(row, column) spacing at the detector")
+    distortion_sigma_px: float = Field(default=0.0, ge=0, allow_inf_nan=False,
+                                       description="an uncorrected image intensifier's distortion prior at the field's corner, px (0: flat panel)")
 
 
 @_bind
@@ -290,7 +292,7 @@ class FluoroShot(_Message):
         png = cv2.imencode(".png", np.clip(np.round(image_log * LOG_SCALE), 0, 65535).astype(np.uint16))[1].tobytes()
         p = view_to_json(view)
         projection = Projection(projection_matrix=tuple(tuple(row) for row in p["projection_matrix"]), rows=p["rows"], columns=p["columns"],
-                                pixel_spacing_mm=tuple(p["pixel_spacing_mm"]))
+                                pixel_spacing_mm=tuple(p["pixel_spacing_mm"]), distortion_sigma_px=float(view.distortion_sigma_px))
         return cls(stamp_ns=int(stamp_ns), view=view_name, projection=projection, png16_base64=base64.b64encode(png).decode(), source_file=source_file)
 
 

@@ -110,3 +110,17 @@ def test_the_dicom_says_which_detector(tmp_path, intensifier):
 def test_a_negative_distortion_size_is_refused():
     with pytest.raises(ValueError, match="distortion_sigma_px"):
         CArmView(projection_matrix=np.hstack([np.eye(3), np.zeros((3, 1))]), rows=10, columns=10, pixel_spacing_mm=(0.3, 0.3), distortion_sigma_px=-1.0)
+
+
+def test_the_shot_on_the_bus_keeps_the_detector(scene):
+    """The node builds its views from the bus's FluoroShot: an intensifier's view must stay one there."""
+    from drillnav.schemas.messages import FluoroShot
+
+    plain = scene.views["outlet"]
+    view = CArmView(projection_matrix=plain.projection_matrix, rows=plain.rows, columns=plain.columns, pixel_spacing_mm=plain.pixel_spacing_mm,
+                    distortion_sigma_px=IMAGE_INTENSIFIER_DISTORTION_PX)
+    shot = FluoroShot.build(np.full((plain.rows, plain.columns), 1.0, np.float32), view, stamp_ns=1, view_name="outlet")
+    again = FluoroShot.from_bytes(shot.to_bytes())
+    assert again.carm_view.distortion_sigma_px == IMAGE_INTENSIFIER_DISTORTION_PX
+    flat = FluoroShot.build(np.full((plain.rows, plain.columns), 1.0, np.float32), plain, stamp_ns=1, view_name="outlet")
+    assert flat.carm_view.distortion_sigma_px == 0.0
