@@ -452,6 +452,7 @@ def main() -> None:
                     "where markers are lost per degradation setting (no registrations)")
     ap.add_argument("--first-seed", type=int, default=3000)
     ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running)")
+    ap.add_argument("--ms", type=int, nargs="+", default=[3, 4, 5], help="numbers of markers M to study (default 3 4 5)")
     args = ap.parse_args()
     seeds, poses = (2, 1) if args.quick else (args.seeds, args.poses)
     if args.degradations is None:
@@ -469,7 +470,7 @@ def main() -> None:
         return
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
-    result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases)
+    result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms))
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)

@@ -23,6 +23,10 @@ when no refinement fits its registration and calibration, and the caller asks
 for the periodic re-solve itself (:func:`refinement_due`) and adopts the result
 (:func:`joint_refinement`) on a later frame, so the ~27 ms solve leaves the frame
 path.
+
+Tags the detector misses (a glove over a corner, glare on a glossy tag) are looked for where the frame's own
+registration predicts them (:func:`recover_missing_tags`, :mod:`.tag_recovery`): only markers posed in
+fluoroscopy and missing from the frame, so a frame that finds every tag pays nothing.
 """
 
 from __future__ import annotations
@@ -33,16 +37,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import PinholeCamera
-from .errors import MarkersNotFound
+from .errors import DrillnavError, MarkersNotFound
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert
 from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
+from .tag_recovery import predict_tag_corners
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
@@ -117,6 +122,41 @@ def refinement_due(refinement: JointRefinement, *, now_ns: int, joint_period_ns:
     return now_ns - refinement.at_ns >= joint_period_ns
 
 
+def _missing(video: VideoDetections, poses: tuple[MarkerPose, ...], locator: VideoMarkerLocator) -> list[MarkerPose]:
+    """The markers posed in fluoroscopy (converged) that the locator knows and the frame did not find."""
+    have = {m.marker_id for m in video.markers}
+    return [p for p in poses if p.converged and p.marker_id not in have and p.marker_id in locator.marker_ids]
+
+
+def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
+                         poses: tuple[MarkerPose, ...], marker_set: MarkerSet, carm_from_drill: NDArray[np.float64] | None = None) -> VideoDetections:
+    """``video`` (what ``locator`` found in ``image``) with the missing tags of markers posed in fluoroscopy recovered.
+
+    Each missing marker's tag is predicted through ``camera`` from ``carm_from_drill`` (4, 4) and its pose in C
+    (both mirror poses when fluoroscopy left it open), then looked for there and its identity verified
+    (:meth:`.VideoMarkerLocator.recover`). Without ``carm_from_drill``, the frame's own Horn + corner PnP
+    registration of the tags found predicts them (nothing is recovered when that is refused). Returns ``video``
+    itself when nothing is missing or nothing was recovered.
+    """
+    missing = _missing(video, poses, locator)
+    if not missing or not video.markers:
+        return video
+    if carm_from_drill is None:
+        try:
+            carm_from_drill = register_video_to_fluoro(video, poses, marker_set, camera, joint=False).carm_from_drill
+        except DrillnavError:
+            return video
+    expected = {}
+    for p in missing:
+        corners_mm = marker_set.by_id(p.marker_id).tag_corners_mm()
+        cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=corners_mm, camera=camera)
+                 for t in (p.carm_from_marker, p.mirror_carm_from_marker) if t is not None]
+        cands = [c for c in cands if c is not None]
+        if cands:
+            expected[p.marker_id] = np.stack(cands)
+    return locator.recover(image, video, expected) if expected else video
+
+
 @dataclass(frozen=True, kw_only=True)
 class FrameAxis:
     """One frame's result.
@@ -149,6 +189,9 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     refinement is never re-solved here (the caller schedules that; a refinement of another registration or
     calibration still is).
 
+    Markers posed in fluoroscopy that the frame misses are recovered where its registration predicts them
+    (:func:`recover_missing_tags`) before the registration that gives the axis.
+
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
     """
@@ -157,11 +200,18 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
     fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
+    recover = dict(locator=calibration.locator, camera=calibration.camera, marker_set=marker_set)
     if fresh:
+        video = recover_missing_tags(image, video, poses=poses, **recover)
         reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
         refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:
         reg = register_video_to_fluoro(video, refinement.poses, marker_set, calibration.camera, joint=False)
+        if _missing(video, refinement.poses, calibration.locator):  # tracking: predicted from this frame's registration, registered again
+            recovered = recover_missing_tags(image, video, poses=refinement.poses, carm_from_drill=reg.carm_from_drill, **recover)
+            if recovered is not video:
+                video = recovered
+                reg = register_video_to_fluoro(video, refinement.poses, marker_set, calibration.camera, joint=False)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers")
         poses = refinement.poses
