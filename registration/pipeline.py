@@ -151,7 +151,8 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
         corners_mm = marker_set.by_id(p.marker_id).tag_corners_mm()
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=corners_mm, camera=camera)
                  for t in (p.carm_from_marker, p.mirror_carm_from_marker) if t is not None]
-        cands = [c for c in cands if c is not None]
+        # Only tags wholly in the frame: a marker out of view costs nothing more.
+        cands = [c for c in cands if c is not None and (c >= 0).all() and (c[:, 0] <= camera.width - 1).all() and (c[:, 1] <= camera.height - 1).all()]
         if cands:
             expected[p.marker_id] = np.stack(cands)
     return locator.recover(image, video, expected) if expected else video
