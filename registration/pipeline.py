@@ -139,7 +139,7 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
     itself when nothing is missing or nothing was recovered.
     """
     missing = _missing(video, poses, locator)
-    if not missing or not video.markers:
+    if not missing or (carm_from_drill is None and not video.markers):
         return video
     if carm_from_drill is None:
         try:
@@ -181,7 +181,7 @@ class FrameAxis:
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
                 limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
-                joint_period_ns: int | None = JOINT_PERIOD_NS) -> FrameAxis:
+                joint_period_ns: int | None = JOINT_PERIOD_NS, previous_carm_from_drill: NDArray[np.float64] | None = None) -> FrameAxis:
     """The drill axis in C from one camera frame and the fluoroscopy marker poses.
 
     ``limits``: the 90 % bounds above which the axis is flagged unreliable (``predicted_error.reliable``).
@@ -191,17 +191,24 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     calibration still is).
 
     Markers posed in fluoroscopy that the frame misses are recovered where its registration predicts them
-    (:func:`recover_missing_tags`) before the registration that gives the axis.
+    (:func:`recover_missing_tags`) before the registration that gives the axis. ``previous_carm_from_drill``
+    (4, 4): a recent frame's registration (a live caller's last axis, a few frames old at most: the tolerance is
+    8 px), which predicts them when none of the tags this frame found is posed in fluoroscopy (no registration of
+    its own to predict from).
 
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
     """
     video = calibration.locator.locate(image)
+    recover = dict(locator=calibration.locator, camera=calibration.camera, marker_set=marker_set)
+    in_use = refinement.poses if refinement_fits(refinement, poses=poses, calibration=calibration) else poses
+    posed = {p.marker_id for p in in_use if p.converged}
+    if previous_carm_from_drill is not None and not posed & {m.marker_id for m in video.markers}:
+        video = recover_missing_tags(image, video, poses=in_use, carm_from_drill=previous_carm_from_drill, **recover)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
     fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
-    recover = dict(locator=calibration.locator, camera=calibration.camera, marker_set=marker_set)
     if fresh:
         video = recover_missing_tags(image, video, poses=poses, **recover)
         reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)

@@ -4,7 +4,8 @@ One twin scene (seed 5000, inlet+outlet, the glove on): its first freehand frame
 which ArUco loses. The tag is recovered from its prediction (true drill pose, the marker's pose in C, through the
 calibrated camera: the calibration's error is in it) within 1 px of the twin's truth at every corner; a foreign
 tag, a blank patch and a prediction 30 px off are refused; ``track_frame`` recovers it (fresh and tracking frames)
-and registers with it, no worse than without it.
+and registers with it, no worse than without it; a previous frame's registration predicts it when the frame has
+no registration of its own.
 """
 
 import sys
@@ -12,17 +13,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from tag_detection import _true_corners  # noqa: E402  (the twin's true corners, as the detection benchmark scores them)
 
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, recover_missing_tags, track_frame
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, predict_tag_corners, recover_tag
 from drillnav.registration.video_fluoro import register_video_to_fluoro
+from drillnav.registration.transforms import make_transform
 from drillnav.registration.video_markers import VideoMarkerLocator
 
 SEED, GLOVED = 5000, 2
@@ -38,6 +42,15 @@ def gloved():
     image.setflags(write=False)
     locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
     return scene, pose, image, locator
+
+
+@pytest.fixture(scope="module")
+def fluoro_poses(gloved):
+    """Every marker's pose from the scene's two fluoroscopy views, as the product detects and poses them."""
+    scene = gloved[0]
+    image_rng = np.random.default_rng([SEED, 1])
+    dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
+    return tuple(register_markers(dets, list(scene.views.values()), scene.marker_set))
 
 
 def _predicted(scene, carm_from_drill, marker_id):
@@ -93,11 +106,9 @@ def test_a_foreign_tag_a_blank_patch_and_a_far_prediction_are_refused(gloved):
         assert not far.accepted, (shift, far)
 
 
-def test_track_frame_registers_with_the_recovered_tag_and_no_worse(gloved):
+def test_track_frame_registers_with_the_recovered_tag_and_no_worse(gloved, fluoro_poses):
     scene, pose, image, locator = gloved
-    image_rng = np.random.default_rng([SEED, 1])
-    dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
-    poses = tuple(register_markers(dets, list(scene.views.values()), scene.marker_set))
+    poses = fluoro_poses
     assert any(p.marker_id == GLOVED and p.converged for p in poses)
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
     entry = scene.corridor_entry_carm_mm
@@ -122,3 +133,16 @@ def test_track_frame_registers_with_the_recovered_tag_and_no_worse(gloved):
     assert tracked.video.by_id()[GLOVED].recovered and GLOVED in tracked.registration.used_ids
     # Nothing missing, nothing to do: the same detections come back.
     assert recover_missing_tags(image, fa.video, locator=locator, camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set) is fa.video
+
+
+def test_a_previous_frames_registration_predicts_when_this_frame_has_none_of_its_own(gloved, fluoro_poses):
+    """Only the gloved marker posed in fluoroscopy: the frame's own tags give no registration to predict from."""
+    scene, pose, image, _ = gloved
+    only = tuple(p for p in fluoro_poses if p.marker_id == GLOVED)
+    calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
+    with pytest.raises(DrillnavError, match="only 0 marker"):
+        track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set)
+    # The drill a frame earlier: 0.5 mm and 0.3 deg from where it is now.
+    moved = make_transform(Rotation.from_rotvec(np.radians(0.3) * np.array([0.6, 0.0, 0.8])).as_matrix(), np.array([0.3, -0.4, 0.0])) @ pose
+    fa = track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set, previous_carm_from_drill=moved)
+    assert fa.video.by_id()[GLOVED].recovered and fa.registration.used_ids == (GLOVED,)
