@@ -124,7 +124,9 @@ def recover_tag(
     ``tolerance_px``: how far (px, along each edge's normal) an edge may lie from its prediction. See the module
     docstring for the method and the acceptance rule.
     """
-    pred = np.asarray(predicted_px, dtype=np.float64).reshape(4, 2)
+    pred = np.asarray(predicted_px, dtype=np.float64)
+    if pred.shape != (4, 2) or not np.isfinite(pred).all():
+        raise ValueError(f"predicted tag corners must be a finite (4, 2) array, got shape {pred.shape}")
     codes = dictionary_codes(dictionary)
     if not 0 <= aruco_id < len(codes):
         raise ValueError(f"ArUco id {aruco_id} is not in {dictionary} (0-{len(codes) - 1})")
