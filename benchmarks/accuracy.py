@@ -38,7 +38,7 @@ from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, rende
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.pipeline import recover_missing_tags
+from drillnav.registration.pipeline import register_with_recovery
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
 
@@ -79,10 +79,14 @@ def _locator(scene) -> VideoMarkerLocator:
     return VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
 
 
-def _recovered(scene, image, video: VideoDetections, poses) -> VideoDetections:
-    """What the product registers from: ``video`` with the missing tags of ``poses`` recovered where the frame's own
-    registration predicts them (``track_frame``'s own step, :func:`~drillnav.registration.pipeline.recover_missing_tags`)."""
-    return recover_missing_tags(image, video, locator=_locator(scene), camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set)
+def _register(scene, image, video: VideoDetections, poses, *, joint: bool, recover: bool = True):
+    """What the product does with a frame: register, recover the missing tags where that registration predicts them,
+    register again (:func:`~drillnav.registration.pipeline.register_with_recovery`, ``track_frame``'s own step):
+    (detections, registration). ``recover`` False: the detector's tags alone."""
+    if not recover:
+        return video, register_video_to_fluoro(video, poses, scene.marker_set, scene.calibrated_camera, joint=joint)
+    return register_with_recovery(image, video, locator=_locator(scene), camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set,
+                                  joint=joint)
 
 
 def load_patient(ct_path: Path) -> VoxelAnatomy:
@@ -144,15 +148,14 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                         chosen = tuple(p for p in marker_poses if p.marker_id in subset)
                         for carm_from_drill, seen, image in frames:
                             # M markers placed: the camera sees only those (else it would claim the others' BBs).
-                            video = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
-                            if recover:
-                                video = _recovered(scene, image, video, chosen)
+                            placed = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
                             for method in methods:
                                 key = (pair, len(vs), m, method)
                                 tried[key] += 1
                                 try:
-                                    reg = register_video_to_fluoro(video, chosen, scene.marker_set, scene.calibrated_camera, joint=method == "joint")
+                                    video, reg = _register(scene, image, placed, chosen, joint=method == "joint", recover=recover)
                                 except DrillnavError as exc:
+                                    video = placed
                                     reason = str(exc).split(" (")[0].split(";")[0]
                                     refusals.setdefault(key, Counter())[reason] += 1
                                     if diagnose is not None and method == "joint":
@@ -215,7 +218,7 @@ def print_cases(cases: list[dict]) -> None:
 
 def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, patient: VoxelAnatomy | None, poses: int = 1) -> dict:
     """Where markers are lost under ``degradations``, M = 5, before any registration: tags the camera finds of those in
-    its field and those recovered from the registration's prediction (:func:`_recovered`), markers fluoroscopy identifies per
+    its field and those recovered from the registration's prediction (:func:`_register`), markers fluoroscopy identifies per
     view (of 5), and markers identified in >= 1 view and found (or recovered) by the camera."""
     cam_found = cam_in = cam_recovered = false_ids = 0
     per_kind: dict[str, list[int]] = {}
@@ -235,7 +238,10 @@ def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, pa
             for pose, video, image in camera_shots(scene, seed=seed, k=k, poses=poses):
                 found = {v.marker_id for v in video.markers}
                 # Recovered as the product does it with both views' marker poses and the frame's own registration.
-                recovered = [v for v in _recovered(scene, image, video, marker_poses).markers if v.recovered]
+                try:
+                    recovered = [v for v in _register(scene, image, video, marker_poses, joint=True)[0].markers if v.recovered]
+                except DrillnavError:  # no registration to predict from
+                    recovered = []
                 after = found | {v.marker_id for v in recovered}
                 truth = _true_corners(scene, pose)
                 cam_found += len(found)

@@ -132,7 +132,8 @@ def test_track_frame_registers_with_the_recovered_tag_and_no_worse(gloved, fluor
     assert tracked.registration.method.startswith("horn+pnp on joint-refined")
     assert tracked.video.by_id()[GLOVED].recovered and GLOVED in tracked.registration.used_ids
     # Nothing missing, nothing to do: the same detections come back.
-    assert recover_missing_tags(image, fa.video, locator=locator, camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set) is fa.video
+    assert recover_missing_tags(image, fa.video, locator=locator, camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set,
+                                carm_from_drill=fa.registration.carm_from_drill) is fa.video
 
 
 def test_a_previous_frames_registration_predicts_when_this_frame_has_none_of_its_own(gloved, fluoro_poses):
