@@ -38,8 +38,9 @@ from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, rende
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
+from drillnav.registration.pipeline import register_with_recovery
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
-from drillnav.registration.video_markers import VideoMarkerLocator
+from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
 
 ROOT = Path(__file__).resolve().parents[1]
 CT = ROOT.parent / "shared" / "data" / "ct" / "cxr.nii.gz"  # the real CT (../shared/data/README.md)
@@ -55,16 +56,37 @@ def _pairs(rng: np.random.Generator) -> dict[str, str]:
             "random": f"{a:.0f}:{rng.uniform(-25, 25):.0f},{np.clip(b, -120, 120):.0f}:{rng.uniform(-25, 25):.0f}"}
 
 
-def camera_frames(scene, *, seed: int, k: int, poses: int) -> list:
-    """``poses`` freehand drill poses of the study (seeded by seed and view pair k) and what the camera locates in each:
-    [(true carm_from_drill, VideoDetections)]."""
-    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+def camera_shots(scene, *, seed: int, k: int, poses: int) -> list:
+    """``poses`` freehand drill poses of the study (seeded by seed and view pair k), what the camera locates in each, and
+    the frame (for the tags the registration recovers): [(true carm_from_drill, VideoDetections, image)]."""
+    locator = _locator(scene)
     pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
-    frames = []
+    shots = []
     for _ in range(poses):
         pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
-        frames.append((pose, locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose))))
-    return frames
+        image = scene.render_camera(camera_rng, carm_from_drill=pose)
+        image.setflags(write=False)
+        shots.append((pose, locator.locate(image), image))
+    return shots
+
+
+def camera_frames(scene, *, seed: int, k: int, poses: int) -> list:
+    """:func:`camera_shots` without the frames: [(true carm_from_drill, VideoDetections)]."""
+    return [(pose, video) for pose, video, _ in camera_shots(scene, seed=seed, k=k, poses=poses)]
+
+
+def _locator(scene) -> VideoMarkerLocator:
+    return VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+
+
+def _register(scene, image, video: VideoDetections, poses, *, joint: bool, recover: bool = True):
+    """What the product does with a frame: register, recover the missing tags where that registration predicts them,
+    register again (:func:`~drillnav.registration.pipeline.register_with_recovery`, ``track_frame``'s own step):
+    (detections, registration). ``recover`` False: the detector's tags alone."""
+    if not recover:
+        return video, register_video_to_fluoro(video, poses, scene.marker_set, scene.calibrated_camera, joint=joint)
+    return register_with_recovery(image, video, locator=_locator(scene), camera=scene.calibrated_camera, poses=poses, marker_set=scene.marker_set,
+                                  joint=joint)
 
 
 def load_patient(ct_path: Path) -> VoxelAnatomy:
@@ -92,11 +114,13 @@ class _Shots:
 
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
-        diagnose: list | None = None) -> dict:
+        diagnose: list | None = None, recover: bool = True) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
     ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
     (its error, 90 % bounds, reliable, and the number of markers used).
+    ``recover``: as the product runs, tags the camera missed are recovered where the frame's registration predicts
+    them before each registration (False: the detector's tags alone, for comparison).
     """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
@@ -115,22 +139,23 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                 shots.fluoro[(seed, pair, fluoro_key)] = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in names}
             dets = shots.fluoro[(seed, pair, fluoro_key)]
             if (seed, pair, video_key) not in shots.video:
-                shots.video[(seed, pair, video_key)] = camera_frames(scene, seed=seed, k=k, poses=poses)
+                shots.video[(seed, pair, video_key)] = camera_shots(scene, seed=seed, k=k, poses=poses)
             frames = shots.video[(seed, pair, video_key)]
             for vs in [names] + [[n] for n in names]:
                 marker_poses = register_markers([dets[n] for n in vs], [scene.views[n] for n in vs], scene.marker_set)
                 for m in ms:
                     for subset in itertools.combinations(sorted(scene.carm_from_marker), m):
                         chosen = tuple(p for p in marker_poses if p.marker_id in subset)
-                        for carm_from_drill, seen in frames:
+                        for carm_from_drill, seen, image in frames:
                             # M markers placed: the camera sees only those (else it would claim the others' BBs).
-                            video = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
+                            placed = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
                             for method in methods:
                                 key = (pair, len(vs), m, method)
                                 tried[key] += 1
                                 try:
-                                    reg = register_video_to_fluoro(video, chosen, scene.marker_set, scene.calibrated_camera, joint=method == "joint")
+                                    video, reg = _register(scene, image, placed, chosen, joint=method == "joint", recover=recover)
                                 except DrillnavError as exc:
+                                    video = placed
                                     reason = str(exc).split(" (")[0].split(";")[0]
                                     refusals.setdefault(key, Counter())[reason] += 1
                                     if diagnose is not None and method == "joint":
@@ -193,10 +218,12 @@ def print_cases(cases: list[dict]) -> None:
 
 def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, patient: VoxelAnatomy | None, poses: int = 1) -> dict:
     """Where markers are lost under ``degradations``, M = 5, before any registration: tags the camera finds of those in
-    its field, markers fluoroscopy identifies per view (of 5), and markers identified in >= 1 view and found by the camera."""
-    cam_found = cam_in = 0
+    its field and those recovered from the registration's prediction (:func:`_register`), markers fluoroscopy identifies per
+    view (of 5), and markers identified in >= 1 view and found (or recovered) by the camera."""
+    cam_found = cam_in = cam_recovered = false_ids = 0
     per_kind: dict[str, list[int]] = {}
     common: list[int] = []
+    common_detected: list[int] = []
     for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(seed)
         for k, (pair, views) in enumerate(_pairs(rng).items()):
@@ -207,27 +234,38 @@ def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, pa
                 kind = n if pair != "random" else "random"
                 per_kind.setdefault(kind, []).append(len(d.markers))
             identified = set().union(*({m.marker_id for m in d.markers} for d in dets.values()))
-            locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
-            pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])
-            for _ in range(poses):
-                pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
-                found = {v.marker_id for v in locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose)).markers}
+            marker_poses = register_markers([dets[n] for n in scene.views], list(scene.views.values()), scene.marker_set)
+            for pose, video, image in camera_shots(scene, seed=seed, k=k, poses=poses):
+                found = {v.marker_id for v in video.markers}
+                # Recovered as the product does it with both views' marker poses and the frame's own registration.
+                try:
+                    recovered = [v for v in _register(scene, image, video, marker_poses, joint=True)[0].markers if v.recovered]
+                except DrillnavError:  # no registration to predict from
+                    recovered = []
+                after = found | {v.marker_id for v in recovered}
+                truth = _true_corners(scene, pose)
                 cam_found += len(found)
-                cam_in += len(tags_in_view(scene, pose))
-                common.append(len(found & identified))
-    return {"camera_found": cam_found, "camera_in_view": cam_in, "identified": {k: float(np.mean(v)) for k, v in per_kind.items()},
-            "common_mean": float(np.mean(common)), "common_lt3_pct": 100.0 * float(np.mean(np.array(common) < 3))}
+                cam_recovered += len(recovered)
+                cam_in += len(truth)
+                # A recovery is false when its tag is not in view or a corner lies over 3 px from the truth.
+                false_ids += sum(v.marker_id not in truth or np.linalg.norm(v.corners_px - truth[v.marker_id], axis=1).max() > 3.0 for v in recovered)
+                common.append(len(after & identified))
+                common_detected.append(len(found & identified))
+    return {"camera_found": cam_found, "camera_recovered": cam_recovered, "camera_in_view": cam_in, "false_recoveries": int(false_ids),
+            "identified": {k: float(np.mean(v)) for k, v in per_kind.items()},
+            "common_mean": float(np.mean(common)), "common_lt3_pct": 100.0 * float(np.mean(np.array(common) < 3)),
+            "common_detected_mean": float(np.mean(common_detected)), "common_detected_lt3_pct": 100.0 * float(np.mean(np.array(common_detected) < 3))}
 
 
-def print_losses(seeds: int, *, patient: VoxelAnatomy | None, settings: list[tuple[str, Degradations]]) -> None:
+def print_losses(seeds: int, first_seed: int = 3000, *, patient: VoxelAnatomy | None, settings: list[tuple[str, Degradations]]) -> None:
     """A markdown table of :func:`losses` per degradation setting."""
     kinds = ("ap", "lateral", "inlet", "outlet", "random")
-    print("| setting | camera tags found / in view | " + " | ".join(kinds) + " | common (mean) | common < 3 |")
-    print("|---|---|" + "---|" * len(kinds) + "---|---|")
+    print("| setting | camera tags found / in view | + recovered (false) | " + " | ".join(kinds) + " | common (mean) detected / recovered too | common < 3 |")
+    print("|---|---|---|" + "---|" * len(kinds) + "---|---|")
     for name, deg in settings:
-        r = losses(seeds, degradations=deg, patient=patient)
+        r = losses(seeds, first_seed, degradations=deg, patient=patient)
         ids = " | ".join(f"{r['identified'].get(k, float('nan')):.2f}" for k in kinds)
-        print(f"| {name} | {r['camera_found']} / {r['camera_in_view']} | {ids} | {r['common_mean']:.2f} | {r['common_lt3_pct']:.0f} % |", flush=True)
+        print(f"| {name} | {r['camera_found']} / {r['camera_in_view']} | +{r['camera_recovered']} ({r['false_recoveries']}) | {ids} | {r['common_detected_mean']:.2f} / {r['common_mean']:.2f} | {r['common_detected_lt3_pct']:.0f} / {r['common_lt3_pct']:.0f} % |", flush=True)
 
 
 def per_degradation(seeds: int, poses: int, *, patient: VoxelAnatomy | None, shots: _Shots, all_result: dict | None) -> list[dict]:
@@ -452,6 +490,9 @@ def main() -> None:
                     "where markers are lost per degradation setting (no registrations)")
     ap.add_argument("--first-seed", type=int, default=3000)
     ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running)")
+    ap.add_argument("--ms", type=int, nargs="+", default=[3, 4, 5], help="numbers of markers M to study (default 3 4 5)")
+    ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
+                    "registration's prediction (the product before it; for comparison)")
     args = ap.parse_args()
     seeds, poses = (2, 1) if args.quick else (args.seeds, args.poses)
     if args.degradations is None:
@@ -465,11 +506,12 @@ def main() -> None:
     t0 = time.perf_counter()
     if args.diagnose and args.per_degradation:
         settings = [("none", Degradations())] + [(n, Degradations().only(n)) for n in Degradations.names() if n != "ct_anatomy" or patient is not None]
-        print_losses(seeds, patient=patient, settings=settings + [(degradations.label(), degradations)])
+        print_losses(seeds, args.first_seed, patient=patient, settings=settings + [(degradations.label(), degradations)])
         return
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
-    result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases)
+    result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
+                 recover=not args.no_recover)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)

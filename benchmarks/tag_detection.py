@@ -9,6 +9,13 @@ the scene, or not visible), the RMS corner error of found tags against the true
 projection, and the locator's time per frame. Tag-free frames (the drape only,
 every degradation) are checked for false ids too.
 
+Tags the detector misses are then looked for where they are predicted (``VideoMarkerLocator.recover``, the
+product's recovery, :mod:`drillnav.registration.tag_recovery`): here predicted from the true drill pose and the
+marker's true pose through the CALIBRATED camera (its calibration error is in the prediction; the registration's
+own error is not: ``benchmarks/accuracy.py --diagnose --per-degradation`` measures recovery from the product's
+registration). Reported: tags recovered, false recoveries (a corner over 3 px from the truth) and the recovered
+corners' RMS error.
+
     .venv/bin/python benchmarks/tag_detection.py --seeds 3 --poses 4
 
 Prints a table and one JSON line.
@@ -24,6 +31,7 @@ import numpy as np
 
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
 from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.tag_recovery import predict_tag_corners
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_markers import VideoMarkerLocator
 
@@ -43,9 +51,11 @@ def _true_corners(scene, carm_from_drill) -> dict[int, np.ndarray]:
 
 
 def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, conditions: list[str] | None = None) -> dict[str, dict]:
-    """condition -> {visible, found, false_ids, corner_rms_px, ms_per_frame} summed over seeds x poses."""
+    """condition -> {visible, found, false_ids, corner_rms_px, ms_per_frame, recovered, recovered_false, recovered_corner_rms_px}
+    summed over seeds x poses."""
     conditions = conditions if conditions is not None else ["none", *CAMERA, "all"]
-    rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0} for c in conditions}
+    rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0,
+                 "recovered": 0, "recovered_false": 0, "sq_err_recovered": 0.0} for c in conditions}
     for seed in range(first_seed, first_seed + seeds):
         for cond in conditions:
             # "all": every camera degradation (the fluoroscopy ones do not touch the camera frame).
@@ -71,12 +81,27 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                     r["sq_err"] += float(np.sum((m.corners_px - truth[m.marker_id]) ** 2))
                     r["n_corners"] += 4
                 r["false_ids"] += len(det.ignored_ids)
+                missed = {i: c for i, c in truth.items() if i not in det.by_id()}
+                expected = {i: predict_tag_corners(carm_from_drill=pose, carm_from_marker=scene.carm_from_marker[i],
+                                                   tag_corners_marker_mm=scene.marker_set.by_id(i).tag_corners_mm(), camera=scene.calibrated_camera)
+                            for i in missed}
+                for m in locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}).markers:
+                    if not m.recovered:
+                        continue
+                    err = np.linalg.norm(m.corners_px - truth[m.marker_id], axis=1) if m.marker_id in truth else np.array([np.inf])
+                    if err.max() > 3.0:
+                        r["recovered_false"] += 1
+                        continue
+                    r["recovered"] += 1
+                    r["sq_err_recovered"] += float(np.sum(err**2))
     out = {}
     for c, r in rows.items():
         out[c] = {
             "visible": r["visible"], "found": r["found"], "found_share": r["found"] / max(r["visible"], 1),
             "false_ids": r["false_ids"], "corner_rms_px": float(np.sqrt(r["sq_err"] / max(r["n_corners"], 1))),
             "ms_per_frame": 1000.0 * r["seconds"] / max(r["frames"], 1),
+            "recovered": r["recovered"], "recovered_false": r["recovered_false"],
+            "recovered_corner_rms_px": float(np.sqrt(r["sq_err_recovered"] / max(4 * r["recovered"], 1))),
         }
     return out
 
@@ -104,15 +129,19 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=3000)
     args = ap.parse_args()
     res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed)
-    print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8}")
+    print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8} "
+          f"{'recovered':>9} {'false':>5} {'rms px':>6}")
     for c, r in res.items():
-        print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f}")
+        print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f} "
+              f"{r['recovered']:>9} {r['recovered_false']:>5} {r['recovered_corner_rms_px']:>6.3f}")
     empty = false_ids_without_tags(seeds=args.seeds, first_seed=args.first_seed)
     print(f"false ids on {args.seeds} tag-free frames (every camera degradation): {empty}")
     print(json.dumps({"seeds": args.seeds, "poses": args.poses, "first_seed": args.first_seed, "false_ids_tag_free_frames": empty,
                       "per_condition": {c: {"found_share": round(r["found_share"], 4), "visible_tags": r["visible"], "found_tags": r["found"],
                                             "false_ids": r["false_ids"], "corner_rms_px": round(r["corner_rms_px"], 4),
-                                            "locate_ms_per_frame": round(r["ms_per_frame"], 2)} for c, r in res.items()}}))
+                                            "locate_ms_per_frame": round(r["ms_per_frame"], 2), "recovered_tags": r["recovered"],
+                                            "recovered_false": r["recovered_false"],
+                                            "recovered_corner_rms_px": round(r["recovered_corner_rms_px"], 4)} for c, r in res.items()}}))
 
 
 if __name__ == "__main__":

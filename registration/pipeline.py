@@ -23,6 +23,11 @@ when no refinement fits its registration and calibration, and the caller asks
 for the periodic re-solve itself (:func:`refinement_due`) and adopts the result
 (:func:`joint_refinement`) on a later frame, so the ~27 ms solve leaves the frame
 path.
+
+Tags the detector misses (a glove over a corner, glare on a glossy tag) are looked for where the frame's own
+registration predicts them, and the frame registered again with them (:func:`register_with_recovery`,
+:mod:`.tag_recovery`): only markers posed in fluoroscopy and missing from the frame, so a frame that finds
+every tag pays nothing.
 """
 
 from __future__ import annotations
@@ -39,10 +44,11 @@ from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert
 from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
+from .tag_recovery import predict_tag_corners
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
@@ -117,6 +123,56 @@ def refinement_due(refinement: JointRefinement, *, now_ns: int, joint_period_ns:
     return now_ns - refinement.at_ns >= joint_period_ns
 
 
+def _missing(video: VideoDetections, poses: tuple[MarkerPose, ...], locator: VideoMarkerLocator) -> list[MarkerPose]:
+    """The markers posed in fluoroscopy (converged) that the locator knows and the frame did not find."""
+    have = {m.marker_id for m in video.markers}
+    return [p for p in poses if p.converged and p.marker_id not in have and p.marker_id in locator.marker_ids]
+
+
+def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
+                         poses: tuple[MarkerPose, ...], marker_set: MarkerSet, carm_from_drill: NDArray[np.float64],
+                         carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> VideoDetections:
+    """``video`` (what ``locator`` found in ``image``) with the missing tags of markers posed in fluoroscopy recovered.
+
+    Each missing marker's tag is predicted through ``camera`` from ``carm_from_drill`` (4, 4) and its pose in C:
+    ``carm_from_marker[id]`` (a registration's refined pose) when given, else its fluoroscopy pose and mirror pose
+    (when fluoroscopy left it open); then looked for there and its identity verified
+    (:meth:`.VideoMarkerLocator.recover`). Returns ``video`` itself when nothing is missing or nothing was recovered.
+    """
+    missing = _missing(video, poses, locator)
+    if not missing:
+        return video
+    refined = carm_from_marker or {}
+    expected = {}
+    for p in missing:
+        starts = (refined[p.marker_id],) if p.marker_id in refined else (p.carm_from_marker, p.mirror_carm_from_marker)
+        cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
+                 for t in starts if t is not None]
+        # Only tags wholly in the frame: a marker out of view costs nothing more.
+        cands = [c for c in cands if c is not None and (c >= 0).all() and (c[:, 0] <= camera.width - 1).all() and (c[:, 1] <= camera.height - 1).all()]
+        if cands:
+            expected[p.marker_id] = np.stack(cands)
+    return locator.recover(image, video, expected) if expected else video
+
+
+def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
+                           poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True) -> tuple[VideoDetections, DrillRegistration]:
+    """Register ``video`` (:func:`.register_video_to_fluoro`), recover the missing tags where that registration predicts
+    them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration).
+
+    The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
+    registration raises.
+    """
+    reg = register_video_to_fluoro(video, poses, marker_set, camera, joint=joint)
+    if not _missing(video, poses, locator):
+        return video, reg
+    more = recover_missing_tags(image, video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                carm_from_marker=reg.carm_from_marker)
+    if more is video:
+        return video, reg
+    return more, register_video_to_fluoro(more, poses, marker_set, camera, joint=joint)
+
+
 @dataclass(frozen=True, kw_only=True)
 class FrameAxis:
     """One frame's result.
@@ -140,7 +196,7 @@ class FrameAxis:
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
                 limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
-                joint_period_ns: int | None = JOINT_PERIOD_NS) -> FrameAxis:
+                joint_period_ns: int | None = JOINT_PERIOD_NS, previous_carm_from_drill: NDArray[np.float64] | None = None) -> FrameAxis:
     """The drill axis in C from one camera frame and the fluoroscopy marker poses.
 
     ``limits``: the 90 % bounds above which the axis is flagged unreliable (``predicted_error.reliable``).
@@ -149,19 +205,30 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     refinement is never re-solved here (the caller schedules that; a refinement of another registration or
     calibration still is).
 
+    Markers posed in fluoroscopy that the frame misses are recovered where its registration predicts them
+    (:func:`recover_missing_tags`) before the registration that gives the axis. ``previous_carm_from_drill``
+    (4, 4): a recent frame's registration (a live caller's last axis, a few frames old at most: the tolerance is
+    8 px), which predicts them when none of the tags this frame found is posed in fluoroscopy (no registration of
+    its own to predict from).
+
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
     """
     video = calibration.locator.locate(image)
+    recover = dict(locator=calibration.locator, camera=calibration.camera)
+    in_use = refinement.poses if refinement_fits(refinement, poses=poses, calibration=calibration) else poses
+    posed = {p.marker_id for p in in_use if p.converged}
+    if previous_carm_from_drill is not None and not posed & {m.marker_id for m in video.markers}:
+        video = recover_missing_tags(image, video, poses=in_use, marker_set=marker_set, carm_from_drill=previous_carm_from_drill, **recover)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
     fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
-        reg = register_video_to_fluoro(video, poses, marker_set, calibration.camera)
+        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, **recover)
         refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
-    else:
-        reg = register_video_to_fluoro(video, refinement.poses, marker_set, calibration.camera, joint=False)
+    else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
+        video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, **recover)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers")
         poses = refinement.poses

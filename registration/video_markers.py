@@ -9,8 +9,8 @@ by the marker's tag offset: ``X_D = camera_from_tag @ (-tag_center_mm)``
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -18,6 +18,8 @@ from numpy.typing import NDArray
 
 from .camera import PinholeCamera
 from .markers import MarkerSet
+from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
+from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, recover_tag
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points"]
@@ -32,6 +34,10 @@ class VideoMarker:
     position_camera_mm : (3,) X_D, the central BB in frame D.
     covariance_mm2 : (3, 3) first-order covariance of X_D from the corner noise.
     reprojection_error_px : RMS corner reprojection error of the chosen pose.
+    recovered : the detector missed the tag; it was found where the registration predicted it and its identity
+        verified by the code cells that could be read (:mod:`.tag_recovery`).
+    corner_sigma_px : the corner noise (1 sigma, px) ``covariance_mm2`` was computed with: larger for a recovered
+        tag (up to one corner is the crossing of two partly hidden edges).
     """
 
     marker_id: int
@@ -40,6 +46,8 @@ class VideoMarker:
     position_camera_mm: NDArray[np.float64]
     covariance_mm2: NDArray[np.float64]
     reprojection_error_px: float
+    recovered: bool = False
+    corner_sigma_px: float = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -101,44 +109,16 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
     n = len(quads)
     if n == 0:
         return []
-    h, w = gray.shape
     offsets = np.arange(-half_px, half_px + step_px / 2, step_px)
-    along = np.linspace(0.2, 0.8, samples)
-    # Edge k of a tag runs from its corner k to corner k+1.
-    d = np.roll(quads, -1, axis=1) - quads                                           # (n, 4, 2)
-    length = np.linalg.norm(d, axis=2)                                               # (n, 4)
-    normal = np.stack([-d[..., 1], d[..., 0]], axis=2) / np.maximum(length, 1e-9)[..., None]
-    base = quads[:, :, None, :] + along[None, None, :, None] * d[:, :, None, :]      # (n, 4, samples, 2)
-    pts = base[:, :, :, None, :] + offsets[None, None, None, :, None] * normal[:, :, None, None, :]
-    ok = (length >= 8.0).all(axis=1)
-    ok &= (pts.reshape(n, -1, 2).min(axis=1) >= 0).all(axis=1)
-    ok &= (pts[..., 0].reshape(n, -1).max(axis=1) <= w - 1) & (pts[..., 1].reshape(n, -1).max(axis=1) <= h - 1)
-    flat = pts.reshape(n * 4 * samples, len(offsets), 2).astype(np.float32)
-    profile = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    grad = np.abs(np.diff(profile, axis=1))
-    weight = np.clip(grad - 0.5 * grad.max(axis=1, keepdims=True), 0.0, None)
-    total = weight.sum(axis=1)
-    ok &= (total.reshape(n, -1) > 0).all(axis=1)
-    safe_total = np.where(total > 0, total, 1.0)
-    shift = (offsets[0] + (weight @ (np.arange(grad.shape[1]) + 0.5)) / safe_total * step_px).reshape(n, 4, samples)
-    edge = base + shift[..., None] * normal[:, :, None, :]                           # (n, 4, samples, 2)
-    # Total least squares per edge: the line through the centroid along the principal direction.
-    point = edge.mean(axis=2)                                                        # (n, 4, 2)
-    rel = edge - point[:, :, None, :]
-    _, _, vt = np.linalg.svd(rel, full_matrices=False)
-    direction = vt[..., 0, :]                                                        # (n, 4, 2)
-    across = np.stack([-direction[..., 1], direction[..., 0]], axis=2)
-    off_line = np.einsum("nksi,nki->nks", rel, across)
-    ok &= np.sqrt(np.mean(off_line**2, axis=2)).max(axis=1) <= max_residual_px
-    # Corner k lies on edge k-1 (corner k-1 -> k) and on edge k (corner k -> k+1): p1 + s d1 = p2 + t d2.
-    p1, d1 = np.roll(point, 1, axis=1), np.roll(direction, 1, axis=1)
-    p2, d2 = point, direction
-    a = np.stack([d1, -d2], axis=3)                                                  # (n, 4, 2, 2): columns d1, -d2
-    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-    ok &= (np.abs(det) > 1e-12).all(axis=1)
-    rhs = p2 - p1
-    s_par = (rhs[..., 0] * a[..., 1, 1] - rhs[..., 1] * a[..., 0, 1]) / np.where(np.abs(det) > 1e-12, det, 1.0)
-    corners = p1 + s_par[..., None] * d1
+    prof = edge_profiles(gray, quads, along=np.linspace(0.2, 0.8, samples), offsets_px=offsets)
+    ok = (prof.length_px >= 8.0).all(axis=1) & prof.inside
+    shift, stepped = step_positions(prof.values, offsets)
+    ok &= stepped.reshape(n, -1).all(axis=1)
+    edge = prof.base_px + shift[..., None] * prof.normal[:, :, None, :]              # (n, 4, samples, 2)
+    point, direction, _, rms = fit_edge_lines(edge)
+    ok &= rms.max(axis=1) <= max_residual_px
+    corners, crossed = edge_corners(point, direction)
+    ok &= crossed
     ok &= np.linalg.norm(corners - quads, axis=2).max(axis=1) <= half_px
     return [corners[i] if ok[i] else None for i in range(n)]
 
@@ -238,7 +218,35 @@ class VideoMarkerLocator:
             found.extend(self._pose(spec, quad if e is None else e) for (spec, quad), e in zip(kept, edges))
         return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h))
 
-    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64]) -> VideoMarker:
+    def recover(self, image: NDArray[np.uint8], video: VideoDetections, expected_corners_px: Mapping[int, NDArray[np.float64]], *,
+                tolerance_px: float = 8.0) -> VideoDetections:
+        """``video`` with the missing markers found where they are expected (:func:`.tag_recovery.recover_tag`).
+
+        expected_corners_px : {marker id: (4, 2) or (k, 4, 2)} predicted tag corners (OpenCV order), k candidates
+            (e.g. a marker's two mirror poses in fluoroscopy): the first one verified is taken.
+        Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
+        nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
+        ``RECOVERED_CORNER_SIGMA_PX``.
+        """
+        have = {m.marker_id for m in video.markers}
+        by_marker = {spec.marker_id: (name, aruco_id, spec) for name, per in self._specs.items() for aruco_id, spec in per.items()}
+        todo = {i: c for i, c in expected_corners_px.items() if i not in have and i in by_marker}
+        if not todo:
+            return video
+        gray = _gray(image).astype(np.float32)
+        found: list[VideoMarker] = []
+        for marker_id, cands in sorted(todo.items()):
+            name, aruco_id, spec = by_marker[marker_id]
+            for pred in np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2):
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px)
+                if got.accepted:
+                    found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
+                    break
+        if not found:
+            return video
+        return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+
+    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
         k, dist = self.camera.camera_matrix, self.camera.distortion
         obj = spec.object_points
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
@@ -253,11 +261,13 @@ class VideoMarkerLocator:
         # First-order covariance of the 6 pose parameters, pushed to X_D.
         j = jac[:, :6]
         normal = j.T @ j
+        sigma = self.corner_sigma_px if corner_sigma_px is None else float(corner_sigma_px)
         try:  # a tag seen at any usable angle gives a well-conditioned 6x6 normal matrix: an inverse (0.2 ms less than pinv)
-            cov_pose = np.linalg.inv(normal) * self.corner_sigma_px**2
+            cov_pose = np.linalg.inv(normal) * sigma**2
         except np.linalg.LinAlgError:
-            cov_pose = np.linalg.pinv(normal) * self.corner_sigma_px**2
+            cov_pose = np.linalg.pinv(normal) * sigma**2
         # dX_D/d(rvec) from Rodrigues' own Jacobian, dX_D/dt = I.
         jx = np.hstack([(dr.reshape(3, 3, 3) @ bb_tag).T, np.eye(3)])
         cov = jx @ cov_pose @ jx.T
-        return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err)
+        return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err,
+                           recovered=corner_sigma_px is not None, corner_sigma_px=sigma)

@@ -1,0 +1,276 @@
+"""Recovery of a tag the ArUco detector missed, from where the registration predicts it, with its identity verified.
+
+ArUco needs a tag's whole black border and a clean read of its code: a gloved finger over one corner, or a
+saturated highlight on a glossy tag, loses the tag although most of it is in plain view. When the registration
+(``carm_from_drill``) and the marker's pose in fluoroscopy predict a missing tag's four corners, the tag is looked
+for there:
+
+1. Each of its four border edges is searched across its predicted line (within ``tolerance_px``): the offset where
+   the profiles step from the bright base outside to the black border inside, taken over the edge's samples by a
+   high percentile so that an occluded part does not decide it. Then each sample's step is placed to sub-pixel
+   (:mod:`.tag_edges`, as the locator refines detected tags) and kept only when it looks like a clean border step
+   (its contrast near the edge's, neither side saturated); a line is fitted to the kept samples, trimming the
+   outliers, and needs ``min_edge_fraction`` of the edge. The corners are the lines' intersections, so a hidden
+   corner comes from its two edges' extensions.
+2. The identity is verified by reading the code cells that can be read: a saturated cell, a cell beside a
+   saturated one (a highlight's halo lifts a black cell), a cell whose samples straddle two levels (an occluder's
+   boundary) or one in the middle between the black border's and the white base's levels is unknown, not a vote.
+   Accepted only when at least ``min_cells`` cells are read, at least ``min_agreement`` of them agree with the
+   expected id's code, the border reads black, and the nearest other id of the dictionary (at the same rotation)
+   disagrees with what was read in at least ``min_margin_cells`` more cells than the expected id does.
+
+A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
+are refused, each with its reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import PinholeCamera
+from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
+from .transforms import apply, invert
+
+__all__ = ["TagRecovery", "recover_tag", "predict_tag_corners", "dictionary_codes", "RECOVERED_CORNER_SIGMA_PX"]
+
+# A recovered tag's corners are noisier than a detected one's: up to one corner is an extrapolation of two
+# partly hidden edges. Measured against the twin's truth (tests/test_tag_recovery.py, benchmarks/tag_detection.py
+# --recover): see docs/identity_and_error.md, "Tags recovered from their prediction".
+RECOVERED_CORNER_SIGMA_PX = 0.5
+
+# A cell whose mean grey level is at least this is clipped (8 bits): a highlight's plateau at 255. A tag's white
+# cells can lie near 250 in a bright field (the print is whiter than the base), and noise lifts single pixels.
+SATURATED = 253.5
+
+
+@lru_cache(maxsize=8)
+def dictionary_codes(dictionary: str) -> NDArray[np.uint8]:
+    """Every id's code cells (n_ids, s, s) of an ArUco dictionary at its first rotation, 1 = white (as OpenCV draws it)."""
+    if not hasattr(cv2.aruco, dictionary):
+        raise ValueError(f"unknown ArUco dictionary '{dictionary}' (e.g. DICT_6X6_250)")
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    size = d.markerSize
+    codes = np.array([cv2.aruco.Dictionary.getBitsFromByteList(d.bytesList[i : i + 1], size) for i in range(len(d.bytesList))], dtype=np.uint8)
+    codes.setflags(write=False)
+    return codes
+
+
+@dataclass(frozen=True, kw_only=True)
+class TagRecovery:
+    """What :func:`recover_tag` found.
+
+    corners_px : (4, 2) the tag's corners (OpenCV order), None when refused.
+    reason : why it was refused ("" when accepted).
+    cells_read : code cells read (neither saturated, occluded nor ambiguous), of the s x s.
+    cells_agreeing : of those, the cells that agree with the expected id's code.
+    nearest_other_id, nearest_other_agreeing : the other id of the dictionary that agrees best with the cells read, and in how many.
+    edge_fraction : (4,) share of each edge's samples its line was fitted to.
+    """
+
+    corners_px: NDArray[np.float64] | None
+    reason: str
+    cells_read: int = 0
+    cells_agreeing: int = 0
+    nearest_other_id: int = -1
+    nearest_other_agreeing: int = 0
+    edge_fraction: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def accepted(self) -> bool:
+        return self.corners_px is not None
+
+
+def predict_tag_corners(*, carm_from_drill: NDArray[np.float64], carm_from_marker: NDArray[np.float64], tag_corners_marker_mm: NDArray[np.float64],
+                        camera: PinholeCamera) -> NDArray[np.float64] | None:
+    """A marker's tag corners (4, 2) px in the camera image, or None when the tag is behind the camera.
+
+    carm_from_drill, carm_from_marker : (4, 4) the registration and the marker's pose in frame C.
+    tag_corners_marker_mm : (4, 3) the tag's corners in the marker frame (``MarkerDesign.tag_corners_mm()``, OpenCV order).
+    """
+    pts_d = apply(invert(carm_from_drill) @ carm_from_marker, np.asarray(tag_corners_marker_mm, dtype=np.float64))
+    if np.any(pts_d[:, 2] <= 1.0):
+        return None
+    return camera.project(pts_d)
+
+
+def _box_mean(values: NDArray[np.float32], width: int) -> NDArray[np.float64]:
+    """Means over ``width`` consecutive samples along the last axis (..., o) -> (..., o - width + 1)."""
+    c = np.cumsum(np.concatenate([np.zeros(values.shape[:-1] + (1,)), values], axis=-1), axis=-1)
+    return (c[..., width:] - c[..., :-width]) / width
+
+
+def recover_tag(
+    gray: NDArray[np.float32],
+    predicted_px: NDArray[np.float64],
+    *,
+    aruco_id: int,
+    dictionary: str = "DICT_6X6_250",
+    tolerance_px: float = 8.0,
+    samples: int = 48,
+    step_px: float = 0.5,
+    min_edge_fraction: float = 0.4,
+    min_cells: int = 20,
+    min_agreement: float = 0.9,
+    min_margin_cells: int = 4,
+    min_contrast: float = 30.0,
+) -> TagRecovery:
+    """Find the tag ``aruco_id`` of ``dictionary`` near its predicted corners (4, 2) px (OpenCV order) in ``gray`` (H, W) float32.
+
+    ``tolerance_px``: how far (px, along each edge's normal) an edge may lie from its prediction. See the module
+    docstring for the method and the acceptance rule.
+    """
+    pred = np.asarray(predicted_px, dtype=np.float64)
+    if pred.shape != (4, 2) or not np.isfinite(pred).all():
+        raise ValueError(f"predicted tag corners must be a finite (4, 2) array, got shape {pred.shape}")
+    codes = dictionary_codes(dictionary)
+    if not 0 <= aruco_id < len(codes):
+        raise ValueError(f"ArUco id {aruco_id} is not in {dictionary} (0-{len(codes) - 1})")
+    side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
+    if side.min() < 12.0:
+        return TagRecovery(corners_px=None, reason=f"predicted tag too small ({side.min():.1f} px side)")
+    # 1. Coarse: per edge, the offset (within the tolerance) where the samples step from bright outside to dark inside.
+    gap = 4  # samples (2 px at 0.5 px) each side of a candidate step
+    reach = tolerance_px + gap * step_px + 1.0
+    offsets = np.arange(-reach, reach + step_px / 2, step_px)
+    along = np.linspace(0.06, 0.94, samples)
+    prof = edge_profiles(gray, pred[None], along=along, offsets_px=offsets)
+    if not prof.inside[0]:
+        return TagRecovery(corners_px=None, reason="the predicted tag's edges leave the frame")
+    vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
+    box = _box_mean(vals, gap)                                                        # mean of gap samples starting at each offset
+    # Candidate step between offsets[j + gap - 1] and offsets[j + gap]: outside mean minus inside mean.
+    contrast = box[..., gap:] - box[..., : box.shape[-1] - gap]                       # (4, s, o - 2 gap + 1)
+    cand = offsets[gap - 1 : gap - 1 + contrast.shape[-1]] + step_px / 2
+    in_tol = np.abs(cand) <= tolerance_px
+    # A high percentile over the edge's samples: a step must run along most of what is visible of the edge.
+    edge_score = np.percentile(contrast, 60, axis=1)                                  # (4, o')
+    edge_score[:, ~in_tol] = -np.inf
+    best = np.argmax(edge_score, axis=1)
+    edge_contrast = edge_score[np.arange(4), best]
+    if edge_contrast.min() < min_contrast:
+        k = int(np.argmin(edge_contrast))
+        return TagRecovery(corners_px=None, reason=f"no border step within {tolerance_px:.0f} px of edge {k} (contrast {edge_contrast[k]:.0f})")
+    coarse = cand[best]                                                               # (4,)
+    # 2. Fine: every sample's step near its edge's coarse offset, kept when it is a clean border step.
+    window = 3.0
+    j0 = np.searchsorted(offsets, coarse - window)
+    width = int(round(2 * window / step_px)) + 1
+    idx = np.clip(j0[:, None] + np.arange(width)[None, :], 0, len(offsets) - 1)       # (4, width)
+    sub_vals = np.take_along_axis(vals, np.broadcast_to(idx[:, None, :], (4, samples, width)), axis=2)
+    sub_off = offsets[idx]                                                            # (4, width)
+    pos = np.empty((4, samples))
+    stepped = np.empty((4, samples), dtype=bool)
+    for k in range(4):  # four small calls: each edge has its own offsets
+        pos[k], stepped[k] = step_positions(sub_vals[k], sub_off[k], falling_inwards=True)
+    # Levels 1.5-3 px either side of each sample's step (bilinear along the profile).
+    lv_out = _levels_at(vals, offsets, pos, (1.5, 3.0))
+    lv_in = _levels_at(vals, offsets, pos, (-3.0, -1.5))
+    step_contrast = lv_out - lv_in
+    clean = stepped & (step_contrast >= 0.5 * edge_contrast[:, None]) & (step_contrast <= 2.0 * edge_contrast[:, None] + 20.0)
+    clean &= (_levels_at(vals, offsets, pos, (1.0, 3.5), reduce=np.max) < SATURATED) & (_levels_at(vals, offsets, pos, (-3.5, -1.0), reduce=np.max) < SATURATED)
+    # Levels like the edge's own: an occluder (a glove over the border) steps to black from a duller grey, and
+    # where it ends the border's step is displaced by the occluder's boundary: its neighbours are dropped too.
+    ref_out = np.array([np.median(lv_out[k][clean[k]]) if clean[k].any() else np.inf for k in range(4)])
+    ref_in = np.array([np.median(lv_in[k][clean[k]]) if clean[k].any() else -np.inf for k in range(4)])
+    clean &= (lv_out >= ref_out[:, None] - 0.25 * edge_contrast[:, None]) & (lv_in <= ref_in[:, None] + 0.25 * edge_contrast[:, None])
+    clean = ~cv2.dilate((~clean).astype(np.uint8), np.ones((1, 5), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    edge = prof.base_px[0] + pos[..., None] * prof.normal[0][:, None, :]             # (4, s, 2)
+    keep = clean.copy()
+    for _ in range(4):  # trim the outliers: a sample off the line by more than 3 robust sigmas (at least 0.4 px)
+        if (keep.sum(axis=1) < 2).any():
+            break
+        _, _, off_line, _ = fit_edge_lines(edge[None], keep[None])
+        r = np.abs(off_line[0])
+        med = np.array([np.median(r[k][keep[k]]) for k in range(4)])
+        cut = np.maximum(3.0 * 1.4826 * med, 0.4)
+        new_keep = clean & (r <= cut[:, None])
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    fraction = keep.mean(axis=1)
+    spans = np.array([np.ptp(along[keep[k]]) if keep[k].sum() >= 2 else 0.0 for k in range(4)])
+    frac_t = tuple(float(f) for f in fraction)
+    if fraction.min() < min_edge_fraction or spans.min() < 0.3:
+        k = int(np.argmin(fraction))
+        return TagRecovery(corners_px=None, reason=f"edge {k}: a clean border step along only {100 * fraction[k]:.0f} % of it", edge_fraction=frac_t)
+    point, direction, _, _ = fit_edge_lines(edge[None], keep[None])
+    corners, crossed = edge_corners(point, direction)
+    corners = corners[0]
+    if not crossed[0] or np.linalg.norm(corners - pred, axis=1).max() > 1.5 * tolerance_px:
+        return TagRecovery(corners_px=None, reason=f"edges found but their corners lie over {1.5 * tolerance_px:.0f} px from the prediction", edge_fraction=frac_t)
+    return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
+                   min_contrast=min_contrast, edge_fraction=frac_t)
+
+
+def _levels_at(vals: NDArray[np.float64], offsets: NDArray[np.float64], pos: NDArray[np.float64], span: tuple[float, float], *, reduce=np.mean) -> NDArray[np.float64]:
+    """Per profile (4, s), ``reduce`` of the profile's grey levels at offsets ``pos + span[0] .. pos + span[1]`` (interpolated)."""
+    rel = np.linspace(span[0], span[1], 4)
+    at = pos[..., None] + rel                                                         # (4, s, 4)
+    fidx = np.clip((at - offsets[0]) / (offsets[1] - offsets[0]), 0, len(offsets) - 1.001)
+    i0 = np.floor(fidx).astype(int)
+    t = fidx - i0
+    v = np.take_along_axis(vals, i0, axis=2) * (1 - t) + np.take_along_axis(vals, i0 + 1, axis=2) * t
+    return reduce(v, axis=2)
+
+
+def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
+            edge_fraction) -> TagRecovery:
+    """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
+    s = codes.shape[1]
+    n = s + 2  # cells across the tag, black border included
+    grid = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], dtype=np.float32)
+    h = cv2.getPerspectiveTransform(grid, corners.astype(np.float32))
+    # Cells -1 .. n: the white base's ring outside the tag, the black border, the code.
+    idx = np.arange(-1, n + 1)
+    sub = np.array([-0.25, 0.0, 0.25])
+    cu = (idx[None, :, None, None] + 0.5 + sub[None, None, None, :]) * np.ones((len(idx), 1, 3, 1))  # column coordinate
+    cv = (idx[:, None, None, None] + 0.5 + sub[None, None, :, None]) * np.ones((1, len(idx), 1, 3))  # row coordinate
+    pts = np.stack([np.broadcast_to(cu, (len(idx), len(idx), 3, 3)), np.broadcast_to(cv, (len(idx), len(idx), 3, 3))], axis=-1).reshape(-1, 1, 2)
+    img_pts = cv2.perspectiveTransform(pts.astype(np.float32), h).reshape(-1, 2)
+    height, width = gray.shape
+    if (img_pts.min(axis=0) < 0).any() or img_pts[:, 0].max() > width - 1 or img_pts[:, 1].max() > height - 1:
+        return TagRecovery(corners_px=None, reason="the tag's surroundings leave the frame", edge_fraction=edge_fraction)
+    v = cv2.remap(gray, img_pts[:, 0].reshape(1, -1), img_pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR).reshape(len(idx), len(idx), 9).astype(np.float64)
+    mean, vmax, vmin = v.mean(axis=2), v.max(axis=2), v.min(axis=2)
+    r, c = np.meshgrid(idx, idx, indexing="ij")
+    ring = ((r == -1) | (r == n)) ^ ((c == -1) | (c == n))      # the base beside each edge, not the diagonal corners
+    border = (((r == 0) | (r == n - 1)) & (c >= 0) & (c < n)) | (((c == 0) | (c == n - 1)) & (r >= 0) & (r < n))
+    code = (r >= 1) & (r <= s) & (c >= 1) & (c <= s)
+    white, black = float(np.median(mean[ring])), float(np.median(mean[border]))
+    contrast = white - black
+    if contrast < min_contrast:
+        return TagRecovery(corners_px=None, reason=f"no tag there: the border is not darker than its surroundings (contrast {contrast:.0f})",
+                           edge_fraction=edge_fraction)
+    mid = 0.5 * (white + black)
+    unknown = (np.abs(mean - mid) < 0.2 * contrast) | (vmax - vmin > 0.5 * contrast)
+    bit = mean > mid
+    # A clipped cell is unknown, and so is a cell beside a clipped one that reads white: a highlight only adds
+    # light, so its halo can lift a black cell to white but never darken a white one (a black read there still counts).
+    sat = mean >= SATURATED
+    halo = cv2.dilate(sat.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    unknown |= sat | (halo & bit)
+    read_border = border & ~unknown
+    if read_border.sum() < 10 or (~bit[read_border]).mean() < 0.75:
+        return TagRecovery(corners_px=None, reason=f"no tag border there: {int((~bit[read_border]).sum())} of {int(read_border.sum())} border cells read black",
+                           edge_fraction=edge_fraction)
+    known = ~unknown[code]
+    read = bit[code].astype(np.uint8)
+    flat = codes.reshape(len(codes), -1)
+    agree = ((flat == read[None, :]) & known[None, :]).sum(axis=1)
+    n_read = int(known.sum())
+    mine = int(agree[aruco_id])
+    agree[aruco_id] = -1
+    other = int(np.argmax(agree))
+    common = dict(cells_read=n_read, cells_agreeing=mine, nearest_other_id=other, nearest_other_agreeing=int(agree[other]), edge_fraction=edge_fraction)
+    if n_read < min_cells:
+        return TagRecovery(corners_px=None, reason=f"only {n_read} code cells readable (at least {min_cells} needed)", **common)
+    if mine < min_agreement * n_read:
+        return TagRecovery(corners_px=None, reason=f"{mine} of {n_read} code cells agree with id {aruco_id} (at least {100 * min_agreement:.0f} % needed)", **common)
+    if (n_read - int(agree[other])) - (n_read - mine) < min_margin_cells:
+        return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+    return TagRecovery(corners_px=corners, reason="", **common)
