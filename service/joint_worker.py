@@ -46,6 +46,9 @@ __all__ = ["JointSolveWorker", "JointSolveCounters", "ADOPT_AFTER_NS", "WAIT_S",
 ADOPT_AFTER_NS = 100_000_000  # capture time from a solve's frame to the frame that adopts it (ns): ~4x the solve's own time
 WAIT_S = 0.0  # how long the adopting frame may wait for a late worker: never, on the live frame path (tests wait, to
 # pin the adopting frame)
+# A registration this recent (capture time) predicts where the next frame's missing tags are (tracking a tag under a
+# glove): at a freehand drill's speed the camera moves under a few millimetres in 100 ms.
+PREVIOUS_POSE_NS = 100_000_000
 GIVE_UP_NS = 2_000_000_000  # a worker silent this long (capture time) past the adoption is stuck: replaced, the solve dropped
 
 _marker_set: MarkerSet | None = None  # the worker process's own copy, sent once
@@ -104,6 +107,9 @@ class JointSolveWorker:
         self.joint_period_ns, self.adopt_after_ns, self.wait_s, self.give_up_ns = joint_period_ns, adopt_after_ns, wait_s, give_up_ns
         self.counters = JointSolveCounters()
         self.refinement: JointRefinement | None = None
+        # The last frame's registration (capture stamp, its marker poses, carm_from_drill): a frame whose own tags are
+        # not posed in fluoroscopy (the posed ones gloved or glared) looks for them where it put them.
+        self._last: tuple[int, tuple[MarkerPose, ...], NDArray[np.float64]] | None = None
         self._pending: _Pending | None = None
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._started: concurrent.futures.Future | None = None
@@ -142,9 +148,12 @@ class JointSolveWorker:
             adopted = self._adopt(pending, stamp_ns=stamp_ns)
             if adopted is not None:
                 self.refinement = adopted
+        last = self._last
+        previous = last[2] if last is not None and last[1] is poses and 0 <= stamp_ns - last[0] <= PREVIOUS_POSE_NS else None
         fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=limits, refinement=self.refinement,
-                         now_ns=stamp_ns, joint_period_ns=None)
+                         now_ns=stamp_ns, joint_period_ns=None, previous_carm_from_drill=previous)
         self.refinement = fa.refinement
+        self._last = (stamp_ns, poses, fa.registration.carm_from_drill)
         if (self._pending is None and fa.refinement is not None and self._pool is not None
                 and refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns)):
             future = self._submit(fa.video, poses, calibration.camera)

@@ -147,3 +147,23 @@ def test_a_previous_frames_registration_predicts_when_this_frame_has_none_of_its
     moved = make_transform(Rotation.from_rotvec(np.radians(0.3) * np.array([0.6, 0.0, 0.8])).as_matrix(), np.array([0.3, -0.4, 0.0])) @ pose
     fa = track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set, previous_carm_from_drill=moved)
     assert fa.video.by_id()[GLOVED].recovered and fa.registration.used_ids == (GLOVED,)
+
+
+def test_the_live_worker_tracks_a_tag_the_glove_slides_over(gloved, fluoro_poses):
+    """The node's frame path (JointSolveWorker): marker 2 alone is posed; seen bare in one frame, then gloved in the
+    next (33 ms later), it is looked for where the first frame's registration put it, and the axis goes on."""
+    from drillnav.service.joint_worker import JointSolveWorker
+
+    scene, pose, image, _ = gloved
+    bare_scene = make_scene(seed=SEED, views="inlet,outlet", render=False)  # the same markers, no glove
+    bare = bare_scene.render_camera(np.random.default_rng(SEED + 1), carm_from_drill=pose)
+    only = tuple(p for p in fluoro_poses if p.marker_id == GLOVED)
+    calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
+    with JointSolveWorker(marker_set=scene.marker_set) as worker:
+        first = worker.track(bare, calibration=calibration, poses=only, stamp_ns=1_000_000_000)
+        assert not first.video.by_id()[GLOVED].recovered
+        second = worker.track(image, calibration=calibration, poses=only, stamp_ns=1_033_000_000)
+        assert second.video.by_id()[GLOVED].recovered and second.registration.used_ids == (GLOVED,)
+        # Long after (no recent registration), the same gloved frame has nothing to predict from.
+        with pytest.raises(DrillnavError, match="only 0 marker"):
+            worker.track(image, calibration=calibration, poses=only, stamp_ns=3_000_000_000)
