@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -38,7 +39,8 @@ from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
-__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA"]
+__all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
+           "CORNER_COMMON_SIGMA_PX", "CORNER_SCALE_SIGMA_PX", "BB_COMMON_SIGMA_PX"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -49,6 +51,14 @@ N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, 
 FOCAL_REL_SIGMA = 0.002
 PRINCIPAL_SIGMA_PX = 0.8
 DISTORTION_SIGMA = (0.003, 0.004, 0.0002, 0.0002, 0.002)
+# Errors shared by a whole group of measurements, which the group's pose absorbs and its residuals therefore
+# cannot show (benchmarks/noise_decomposition.py measures them against the twin's truth): per image axis, a
+# shift common to a tag's four corners (blur, defocus and compression move a tag's edges together) and a
+# shift common to one marker's BBs in one fluoroscopy view (the intensifier's distortion moves a marker's
+# BBs together). Each group's measurements have covariance sigma^2 I + common^2 11^T per image axis.
+CORNER_COMMON_SIGMA_PX = 0.0
+CORNER_SCALE_SIGMA_PX = 0.0
+BB_COMMON_SIGMA_PX = 0.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,6 +119,9 @@ def joint_solve(
     focal_rel_sigma: float = FOCAL_REL_SIGMA,
     principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
     distortion_sigma: tuple[float, ...] = DISTORTION_SIGMA,
+    corner_common_sigma_px: float = CORNER_COMMON_SIGMA_PX,
+    corner_scale_sigma_px: float = CORNER_SCALE_SIGMA_PX,
+    bb_common_sigma_px: float = BB_COMMON_SIGMA_PX,
     outlier_chi: float = 4.0,
     bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
@@ -121,6 +134,9 @@ def joint_solve(
     Markers in both ``observations`` and ``corners_px`` are used; a marker whose RMS normalised residual
     exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain;
     before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped.
+    ``corner_common_sigma_px`` / ``bb_common_sigma_px``: the per-axis shift shared by a tag's four corners / by
+    one marker's BBs in one view (see :data:`CORNER_COMMON_SIGMA_PX`); each group is whitened with it, so the
+    estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot show.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -132,7 +148,10 @@ def joint_solve(
     prior_sigma = np.array([focal_rel_sigma, principal_sigma_px, principal_sigma_px, *distortion_sigma], dtype=np.float64)
     if prior_sigma.shape != (N_INTRINSICS,) or not np.all(prior_sigma > 0):
         raise ValueError(f"the camera priors need focal, principal and 5 distortion sigmas, all > 0; got {prior_sigma.tolist()}")
-    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma)
+    if not (corner_common_sigma_px >= 0 and corner_scale_sigma_px >= 0 and bb_common_sigma_px >= 0):
+        raise ValueError(f"shared sigmas must be >= 0 px, got corner shift {corner_common_sigma_px}, corner scale {corner_scale_sigma_px}, "
+                         f"BB shift {bb_common_sigma_px}")
+    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     clean = max(sol.marker_chi.values()) <= outlier_chi and all(
@@ -167,11 +186,11 @@ def joint_solve(
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
 
 
-def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[slice, ...], *, min_scale: float = 0.5,
+def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[NDArray[np.int64], ...], *, min_scale: float = 0.5,
                   min_dof: float = 4.0) -> NDArray[np.float64]:
     """Per-row factor (R,) by which each group's assumed noise is off: sqrt(chi-square / redundancy) of the group.
 
-    Variance components: a group's redundancy is the sum of its rows' 1 - leverage (its share of the fit's
+    groups: the row indices of each group. Variance components: a group's redundancy is the sum of its rows' 1 - leverage (its share of the fit's
     degrees of freedom). Rows outside the groups (priors) keep 1; a group with less than ``min_dof`` of
     redundancy keeps 1 (too few to estimate); the factor is at least ``min_scale`` (a few residuals that
     happen to be small must not shrink the bound to nothing).
@@ -208,8 +227,41 @@ def _trim(observations, carm_from_marker, max_px: float) -> tuple:
     return tuple(out)
 
 
+def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shift_px: float,
+                     scale_px: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Whitening of groups of image points whose errors share a shift and a scale within each group.
+
+    groups_px : each group's image points (N, 2), in row order (rows x0, y0, x1, y1, ...). A group's 2N errors
+    have covariance sigma^2 I + shift^2 (per image axis, all N points together) + scale^2 (every point moved
+    along its radius from the group's centre, by ``scale_px`` at the mean radius; groups of 3 or more points).
+    Returns ``W`` (2N, 2N in all, block diagonal and orthonormal: per group its shared modes first, then an
+    orthonormal complement), the noise (2N,) of each row of ``W @ e`` and which rows are shared modes.
+    ``(W @ e) / noise`` are independent unit-variance residuals with the same sum of squares as the Cholesky
+    whitening of the group's covariance, each group's rows still depending on its own marker alone.
+    """
+    blocks, noise, shared = [], [], []
+    for pts in groups_px:
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        n = len(pts)
+        modes = [np.tile([1.0, 0.0], n) / np.sqrt(n), np.tile([0.0, 1.0], n) / np.sqrt(n)]
+        var = [sigma_px**2 + n * shift_px**2] * 2
+        rel = (pts - pts.mean(axis=0)).ravel()
+        radius = float(np.mean(np.linalg.norm(rel.reshape(-1, 2), axis=1)))
+        if n >= 3 and radius > 0:
+            norm = float(np.linalg.norm(rel))
+            modes.append(rel / norm)
+            var.append(sigma_px**2 + (scale_px * norm / radius) ** 2)  # scale s at the mean radius: s |rel| / radius on the mode
+        m = np.stack(modes, axis=1)
+        q = np.linalg.qr(m, mode="complete")[0]
+        q[:, : m.shape[1]] = m  # the shared modes themselves (already orthonormal), not QR's signs
+        blocks.append(q.T)
+        noise += [np.sqrt(v) for v in var] + [sigma_px] * (2 * n - len(var))
+        shared += [True] * len(var) + [False] * (2 * n - len(var))
+    return block_diag(*blocks), np.asarray(noise), np.asarray(shared)
+
+
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
-           fluoro_sigma_px, corner_sigma_px, prior_sigma, *, loss: str) -> JointSolution:
+           fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, *, loss: str) -> JointSolution:
     m = len(ids)
     poses0 = np.stack([markers0[i] for i in ids])
     pivots = poses0[:, :3, 3].copy()
@@ -223,9 +275,11 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             f_marker.append(np.full(len(obj), k))
             f_p.append(np.repeat(view.projection_matrix[None], len(obj), axis=0))
     f_obj_a, f_img_a, f_mk, f_pa = np.concatenate(f_obj), np.concatenate(f_img), np.concatenate(f_marker), np.concatenate(f_p)
+    wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, 0.0)
     c_obj = np.concatenate([marker_set.by_id(i).tag_corners_mm() for i in ids])
     c_img = np.concatenate([np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids])
     c_mk = np.repeat(np.arange(m), 4)
+    wc, c_noise, _ = _group_whitening([c_img[4 * k : 4 * k + 4] for k in range(m)], corner_sigma_px, corner_common_px, corner_scale_px)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
@@ -243,7 +297,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         t_m = np.einsum("pmij,mj->pmi", rm, poses0[:, :3, 3] - pivots) + pivots + dm[..., 3:]
         pc = np.einsum("pnij,nj->pni", rot_m[:, f_mk], f_obj_a) + t_m[:, f_mk]
         h = np.einsum("nij,pnj->pni", f_pa[:, :, :3], pc) + f_pa[:, :, 3]
-        rf = (h[..., :2] / h[..., 2:3] - f_img_a) / fluoro_sigma_px
+        rf = np.einsum("ij,pj->pi", wf, (h[..., :2] / h[..., 2:3] - f_img_a).reshape(n, -1)) / f_noise
         cc = np.einsum("pnij,nj->pni", rot_m[:, c_mk], c_obj) + t_m[:, c_mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
         xy0 = cd[..., :2] / cd[..., 2:3]
@@ -252,7 +306,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
         v = fy0 * s * xy[..., 1] + cy0 + intr[:, 2:3]
-        rc = (np.stack([u, v], axis=-1) - c_img) / corner_sigma_px
+        rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
         prior = intr / prior_sigma
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
 
@@ -298,8 +352,19 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     red = float(np.sum(res**2) / dof)
     jac = np.asarray(sol.jac)
     # Each group's noise (BBs, corners) from its own residuals, not one reduced chi-square for all: a global
-    # factor would also scale the intrinsics' prior, whose size the residuals say nothing about.
-    w = 1.0 / _noise_scales(jac, res, (slice(0, n_f), slice(n_f, n_f + n_c)))
+    # factor would also scale the intrinsics' prior, whose size the residuals say nothing about. Only the
+    # contrasts within a group (tag, marker-view) tell its independent noise: a group's shared modes also
+    # carry the shared shift and scale, which its pose absorbs. The shared rows keep the stated shared part
+    # and take the independent part's factor.
+    # A row whose noise is the independent sigma alone (a contrast, or a shared mode stated as 0) estimates it.
+    f_est, c_est = np.isclose(f_noise, fluoro_sigma_px), np.isclose(c_noise, corner_sigma_px)
+    scales = _noise_scales(jac, res, (np.nonzero(f_est)[0], n_f + np.nonzero(c_est)[0]))
+    for est, noise, sigma, start in ((f_est, f_noise, fluoro_sigma_px, 0), (c_est, c_noise, corner_sigma_px, n_f)):
+        k = scales[start : start + len(est)][est][:1]  # the group's factor (the same on all its estimating rows)
+        if len(k) and not np.all(est):
+            stated = noise[~est]
+            scales[start + np.nonzero(~est)[0]] = np.sqrt(stated**2 + (k[0] ** 2 - 1.0) * sigma**2) / stated
+    w = 1.0 / scales
     jw = jac * w[:, None]
     cov = np.linalg.pinv(jw.T @ jw)
     return JointSolution(
@@ -310,8 +375,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         used_ids=tuple(ids),
         rejected_ids=(),
         marker_chi=chi,
-        fluoro_rms_px=float(np.sqrt(np.mean(np.sum(rf**2, axis=1)))) * fluoro_sigma_px,
-        corner_rms_px=float(np.sqrt(np.mean(np.sum(rc**2, axis=1)))) * corner_sigma_px,
+        fluoro_rms_px=float(np.sqrt(2.0 * np.mean((wf.T @ (res[:n_f] * f_noise)) ** 2))),
+        corner_rms_px=float(np.sqrt(2.0 * np.mean((wc.T @ (res[n_f : n_f + n_c] * c_noise)) ** 2))),
         reduced_chi2=red,
         chi2=float(np.sum(res**2)),
         converged=bool(sol.success),
