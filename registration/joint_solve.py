@@ -40,7 +40,7 @@ from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
-           "CORNER_COMMON_SIGMA_PX", "CORNER_SCALE_SIGMA_PX", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
+           "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -56,14 +56,19 @@ DISTORTION_SIGMA = (0.003, 0.004, 0.0002, 0.0002, 0.002)
 # against the twin's truth, seeds 9100-9103, docs/identity_and_error.md). Each group's errors have covariance
 # sigma^2 I + shift^2 (per image axis, the group together) + scale^2 (radially, at the group's mean radius).
 # A tag's four corners: blur, defocus, compression and an exposure step move a tag's edges together, sideways
-# (shift) and in or out (scale); with every camera degradation on, 0.22 px shift and 0.68 px scale (the
-# independent rest 0.49 px; a clean frame: 0.07 / 0.03 / 0.04 px).
-CORNER_COMMON_SIGMA_PX = 0.22
-CORNER_SCALE_SIGMA_PX = 0.68
+# (shift) and in or out (scale), as they widen its edges and so raise the corners' independent scatter too: stated
+# in proportion to that independent noise (as the residuals re-estimate it), so a sharp frame is not charged for a
+# blurred one's errors. With every camera degradation on: 0.22 px shift and 0.68 px scale against 0.49 px
+# independent (0.45 and 1.4 of it); motion blur alone 0.23 / 0.14 / 0.35 px; a clean frame 0.07 / 0.03 / 0.04 px
+# (its independent noise floored at half the stated 0.3 px, so charged 0.07 / 0.21 px).
+CORNER_COMMON_PER_SIGMA = 0.45
+CORNER_SCALE_PER_SIGMA = 1.4
 # One marker's BBs in one fluoroscopy view: an image intensifier's distortion (pincushion, S) is smooth over a
 # marker's few centimetres, so it shifts and scales its BBs together; with every fluoroscopy degradation on,
 # 0.77 px shift and 0.24 px scale (independent rest 0.28 px, and the BBs' 0.05 mm manufacturing error 0.32 px
-# per coordinate, which the variance components see); a flat panel's clean shot: 0.02 / 0.02 px.
+# per coordinate, which the variance components see); a flat panel's clean shot: 0.02 / 0.02 px. Stated for an
+# image-intensifier C-arm, as the operating room of issue 17 has it: with a flat panel they cost some accuracy
+# and widen the bound (docs/identity_and_error.md); pass 0 for one.
 BB_COMMON_SIGMA_PX = 0.77
 BB_SCALE_SIGMA_PX = 0.24
 
@@ -126,8 +131,8 @@ def joint_solve(
     focal_rel_sigma: float = FOCAL_REL_SIGMA,
     principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
     distortion_sigma: tuple[float, ...] = DISTORTION_SIGMA,
-    corner_common_sigma_px: float = CORNER_COMMON_SIGMA_PX,
-    corner_scale_sigma_px: float = CORNER_SCALE_SIGMA_PX,
+    corner_common_per_sigma: float = CORNER_COMMON_PER_SIGMA,
+    corner_scale_per_sigma: float = CORNER_SCALE_PER_SIGMA,
     bb_common_sigma_px: float = BB_COMMON_SIGMA_PX,
     bb_scale_sigma_px: float = BB_SCALE_SIGMA_PX,
     outlier_chi: float = 4.0,
@@ -142,9 +147,11 @@ def joint_solve(
     Markers in both ``observations`` and ``corners_px`` are used; a marker whose RMS normalised residual
     exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain;
     before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped.
-    ``corner_common_sigma_px`` / ``bb_common_sigma_px``: the per-axis shift shared by a tag's four corners / by
-    one marker's BBs in one view (see :data:`CORNER_COMMON_SIGMA_PX`); each group is whitened with it, so the
-    estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot show.
+    ``corner_common_per_sigma``, ``corner_scale_per_sigma`` (in units of the corners' independent noise) and
+    ``bb_common_sigma_px``, ``bb_scale_sigma_px``: the shift (per axis) and scale shared by a tag's four corners /
+    by one marker's BBs in one view (see :data:`CORNER_COMMON_PER_SIGMA`); each group is whitened with them, so
+    the estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot
+    show.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -156,8 +163,9 @@ def joint_solve(
     prior_sigma = np.array([focal_rel_sigma, principal_sigma_px, principal_sigma_px, *distortion_sigma], dtype=np.float64)
     if prior_sigma.shape != (N_INTRINSICS,) or not np.all(prior_sigma > 0):
         raise ValueError(f"the camera priors need focal, principal and 5 distortion sigmas, all > 0; got {prior_sigma.tolist()}")
+    corner_common_sigma_px, corner_scale_sigma_px = corner_common_per_sigma * corner_sigma_px, corner_scale_per_sigma * corner_sigma_px
     if not (corner_common_sigma_px >= 0 and corner_scale_sigma_px >= 0 and bb_common_sigma_px >= 0 and bb_scale_sigma_px >= 0):
-        raise ValueError(f"shared sigmas must be >= 0 px, got corner shift {corner_common_sigma_px}, corner scale {corner_scale_sigma_px}, "
+        raise ValueError(f"shared sigmas must be >= 0, got corner shift {corner_common_sigma_px}, corner scale {corner_scale_sigma_px}, "
                          f"BB shift {bb_common_sigma_px}, BB scale {bb_scale_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
@@ -367,11 +375,13 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     # A row whose noise is the independent sigma alone (a contrast, or a shared mode stated as 0) estimates it.
     f_est, c_est = np.isclose(f_noise, fluoro_sigma_px), np.isclose(c_noise, corner_sigma_px)
     scales = _noise_scales(jac, res, (np.nonzero(f_est)[0], n_f + np.nonzero(c_est)[0]))
-    for est, noise, sigma, start in ((f_est, f_noise, fluoro_sigma_px, 0), (c_est, c_noise, corner_sigma_px, n_f)):
+    # The corners' shared part is stated in proportion to their independent noise (the same blur makes both), so
+    # it takes the same factor; the BBs' shared part (the intensifier's) is stated in px and keeps its size.
+    for est, noise, sigma, start, proportional in ((f_est, f_noise, fluoro_sigma_px, 0, False), (c_est, c_noise, corner_sigma_px, n_f, True)):
         k = scales[start : start + len(est)][est][:1]  # the group's factor (the same on all its estimating rows)
         if len(k) and not np.all(est):
             stated = noise[~est]
-            scales[start + np.nonzero(~est)[0]] = np.sqrt(stated**2 + (k[0] ** 2 - 1.0) * sigma**2) / stated
+            scales[start + np.nonzero(~est)[0]] = k[0] if proportional else np.sqrt(stated**2 + (k[0] ** 2 - 1.0) * sigma**2) / stated
     w = 1.0 / scales
     jw = jac * w[:, None]
     cov = np.linalg.pinv(jw.T @ jw)

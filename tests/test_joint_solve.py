@@ -77,7 +77,7 @@ def _scatter_d2(scene, rng, *, shared: bool, **model) -> float:
     """Mean squared Mahalanobis distance of 30 joint solutions' drill pose errors under their own covariance (about
     6, the number of parameters, when the covariance is right), the camera exact; ``shared``: each tag's corners
     and each marker's BBs also moved together by the stated shift and scale."""
-    from drillnav.registration.joint_solve import (BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX, CORNER_COMMON_SIGMA_PX, CORNER_SCALE_SIGMA_PX,
+    from drillnav.registration.joint_solve import (BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX, CORNER_COMMON_PER_SIGMA, CORNER_SCALE_PER_SIGMA,
                                                    joint_solve)
 
     def together(px, shift, scale):
@@ -95,7 +95,7 @@ def _scatter_d2(scene, rng, *, shared: bool, **model) -> float:
             px = view.project(apply(pose, design.bb_centers_mm)) + rng.normal(scale=0.35, size=(len(design.bbs), 2))
             observations[marker_id] = ((view, design.bb_centers_mm, together(px, BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX)),)
             c = camera.project(apply(drill_from_carm @ pose, design.tag_corners_mm())) + rng.normal(scale=0.3, size=(4, 2))
-            corners[marker_id] = together(c, CORNER_COMMON_SIGMA_PX, CORNER_SCALE_SIGMA_PX)
+            corners[marker_id] = together(c, 0.3 * CORNER_COMMON_PER_SIGMA, 0.3 * CORNER_SCALE_PER_SIGMA)
         sol = joint_solve(observations=observations, corners_px=corners, marker_set=scene.marker_set, camera=camera,
                           carm_from_drill0=scene.carm_from_drill, carm_from_marker0=dict(scene.carm_from_marker), focal_rel_sigma=1e-6, principal_sigma_px=1e-4,
                           distortion_sigma=(1e-5,) * 5, **model)  # the camera exact: only the noise drawn here
@@ -108,7 +108,7 @@ def _scatter_d2(scene, rng, *, shared: bool, **model) -> float:
     return float(np.mean(d2))
 
 
-NO_SHARED = dict(corner_common_sigma_px=0.0, corner_scale_sigma_px=0.0, bb_common_sigma_px=0.0, bb_scale_sigma_px=0.0)
+NO_SHARED = dict(corner_common_per_sigma=0.0, corner_scale_per_sigma=0.0, bb_common_sigma_px=0.0, bb_scale_sigma_px=0.0)
 
 
 def test_covariance_matches_the_scatter_of_solutions(ap_scene):
