@@ -13,7 +13,9 @@ near camera.json by priors of its calibration uncertainty, so that the covarianc
 carries it).
 Residuals, each divided by its noise: every identified BB in every fluoroscopy
 view (``fluoro_sigma_px``) and every tag corner in the camera image
-(``corner_sigma_px``). scipy's ``least_squares`` (trust-region reflective); the
+(``corner_sigma_px``), each tag's corners and each marker's BBs in a view whitened
+together for the shift and scale they share (blur, exposure, an image
+intensifier's distortion: :data:`CORNER_COMMON_PER_SIGMA`, :data:`BB_COMMON_SIGMA_PX`). scipy's ``least_squares`` (trust-region reflective); the
 Jacobian is block sparse (a BB residual depends on its own marker's 6
 parameters only, a corner on its marker's, the drill's and the intrinsics) and
 small, so all its forward differences are taken in one batched evaluation. A marker whose normalised residuals stand out is rejected, named,
