@@ -7,7 +7,8 @@ camera
     every tag's 4 detected corners against the true camera's projection of the tag's true corners (true
     drill pose, true intrinsics): per tag a common shift (the mean of the 4 errors, per image axis), a common
     scale (the errors' component along each corner's radius from the tag centre, averaged) and the
-    independent remainder (RMS per coordinate, with the 3 fitted degrees of freedom taken out of the 8).
+    independent remainder (RMS per coordinate, with the 3 fitted degrees of freedom taken out of the 8); the
+    tags' shifts and scales further split into the part common to every tag of the frame and each tag's own.
 fluoroscopy
     every identified BB's centre against the true view's projection of the design BB at the marker's true pose,
     split into the manufacturing part (the as-built BB's projection minus the design's: the same 3D error in
@@ -58,11 +59,12 @@ def split(err: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarr
 def camera_errors(scene, rng_seed, poses: int) -> dict[str, list]:
     locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
     pose_rng, camera_rng = np.random.default_rng([rng_seed, 2]), np.random.default_rng([rng_seed, 3])
-    out = {"shift": [], "scale": [], "rest": [], "dof": []}
+    out = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": []}
     for _ in range(poses):
         carm_from_drill = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
         seen = locator.locate(scene.render_camera(camera_rng, carm_from_drill=carm_from_drill))
         drill_from_carm = invert(carm_from_drill)
+        shifts, scales = [], []
         for v in seen.markers:
             design = scene.marker_set.by_id(v.marker_id)
             truth = scene.true_camera.project(apply(drill_from_carm @ scene.carm_from_marker[v.marker_id], design.tag_corners_mm()))
@@ -74,6 +76,14 @@ def camera_errors(scene, rng_seed, poses: int) -> dict[str, list]:
             out["scale"].append(scale)
             out["rest"].append(rest.ravel())
             out["dof"].append(8 - 3)
+            shifts.append(shift)
+            scales.append(scale)
+        if len(shifts) >= 2:
+            # The part common to every tag of the frame (one exposure, one blur kernel) and each tag's own.
+            out["frame_shift"].append(np.mean(shifts, axis=0))
+            out["frame_scale"].append(float(np.mean(scales)))
+            out["tag_shift"] += list(np.asarray(shifts) - np.mean(shifts, axis=0))
+            out["tag_scale"] += list(np.asarray(scales) - np.mean(scales))
     return out
 
 
@@ -119,6 +129,11 @@ def summary(d: dict[str, list]) -> dict[str, float]:
         # Each group's remainder has lost 3 of its 2N degrees of freedom to the fitted shift and scale.
         "independent_px_rms_per_coord": float(np.sqrt(np.sum(rest**2) / max(1, sum(d["dof"])))),
     }
+    if d.get("frame_shift"):
+        res["frame_shift_px_rms_per_axis"] = float(np.sqrt(np.mean(np.square(d["frame_shift"]))))
+        res["frame_scale_px_rms"] = float(np.sqrt(np.mean(np.square(d["frame_scale"]))))
+        res["tag_shift_within_frame_px_rms_per_axis"] = float(np.sqrt(np.mean(np.square(d["tag_shift"]))))
+        res["tag_scale_within_frame_px_rms"] = float(np.sqrt(np.mean(np.square(d["tag_scale"]))))
     if "manufacturing" in d and d["manufacturing"]:
         res["manufacturing_px_rms_per_coord"] = float(np.sqrt(np.mean(np.concatenate(d["manufacturing"]) ** 2)))
         res["manufacturing_shift_px_rms_per_axis"] = float(np.sqrt(np.mean(np.square(d["mfg_shift"]))))
@@ -144,7 +159,7 @@ def main() -> None:
         deg = Degradations.parse(text)
         if deg.ct_anatomy and patient is None:
             patient = load_patient(args.ct)
-        cam: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": []}
+        cam: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": []}
         flu: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "manufacturing": [], "mfg_shift": []}
         xray = any(getattr(deg, n) for n in ("low_dose", "ct_anatomy", "hardware", "collimator", "ii_distortion"))
         for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -160,7 +175,9 @@ def main() -> None:
         fmt = lambda s: ("-" if not s.get("groups") else  # noqa: E731
                          f"{s['groups']:4d} groups: shift {s['common_shift_px_rms_per_axis']:.3f}, scale {s['common_scale_px_rms']:.3f}, "
                          f"independent {s['independent_px_rms_per_coord']:.3f}"
-                         + (f", manufacturing {s['manufacturing_px_rms_per_coord']:.3f}" if "manufacturing_px_rms_per_coord" in s else ""))
+                         + (f", manufacturing {s['manufacturing_px_rms_per_coord']:.3f}" if "manufacturing_px_rms_per_coord" in s else "")
+                         + (f"; of which common to the frame: shift {s['frame_shift_px_rms_per_axis']:.3f}, scale {s['frame_scale_px_rms']:.3f}"
+                            if "frame_shift_px_rms_per_axis" in s else ""))
         print(f"{deg.label():60s} camera  {fmt(c)}\n{'':60s} fluoro  {fmt(f)}", flush=True)
     print(f"seeds {args.first_seed}-{args.first_seed + args.seeds - 1}, {args.poses} camera frames per scene, views {args.views}; {time.time() - t0:.0f} s")
     print(json.dumps({"first_seed": args.first_seed, "seeds": args.seeds, "results": results}))
