@@ -13,7 +13,9 @@ near camera.json by priors of its calibration uncertainty, so that the covarianc
 carries it).
 Residuals, each divided by its noise: every identified BB in every fluoroscopy
 view (``fluoro_sigma_px``) and every tag corner in the camera image
-(``corner_sigma_px``). scipy's ``least_squares`` (trust-region reflective); the
+(``corner_sigma_px``), each tag's corners and each marker's BBs in a view whitened
+together for the shift and scale they share (blur, exposure, an image
+intensifier's distortion: :data:`CORNER_COMMON_PER_SIGMA`, :data:`BB_COMMON_SIGMA_PX`). scipy's ``least_squares`` (trust-region reflective); the
 Jacobian is block sparse (a BB residual depends on its own marker's 6
 parameters only, a corner on its marker's, the drill's and the intrinsics) and
 small, so all its forward differences are taken in one batched evaluation. A marker whose normalised residuals stand out is rejected, named,
@@ -30,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -39,7 +42,8 @@ from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 
-__all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA"]
+__all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
+           "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -50,6 +54,26 @@ N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, 
 FOCAL_REL_SIGMA = 0.002
 PRINCIPAL_SIGMA_PX = 0.8
 DISTORTION_SIGMA = (0.003, 0.004, 0.0002, 0.0002, 0.002)
+# Errors shared by a whole group of measurements, which the group's pose absorbs and its residuals therefore
+# cannot show, as the operating room makes them (1 sigma, px; benchmarks/noise_decomposition.py measures each
+# against the twin's truth, seeds 9100-9103, docs/identity_and_error.md). Each group's errors have covariance
+# sigma^2 I + shift^2 (per image axis, the group together) + scale^2 (radially, at the group's mean radius).
+# A tag's four corners: blur, defocus, compression and an exposure step move a tag's edges together, sideways
+# (shift) and in or out (scale), as they widen its edges and so raise the corners' independent scatter too: stated
+# in proportion to that independent noise (as the residuals re-estimate it), so a sharp frame is not charged for a
+# blurred one's errors. With every camera degradation on: 0.22 px shift and 0.68 px scale against 0.49 px
+# independent (0.45 and 1.4 of it); motion blur alone 0.23 / 0.14 / 0.35 px; a clean frame 0.07 / 0.03 / 0.04 px
+# (its independent noise floored at half the stated 0.3 px, so charged 0.07 / 0.21 px).
+CORNER_COMMON_PER_SIGMA = 0.45
+CORNER_SCALE_PER_SIGMA = 1.4
+# One marker's BBs in one fluoroscopy view: what they share once an image intensifier's distortion is estimated
+# (a view that says it comes from one gets its pincushion and S distortion as unknowns of its own: registration/
+# carm.py, intensifier_shift_px). Measured (benchmarks/noise_decomposition.py, seeds 9100-9102, inlet+outlet) with
+# surgeon_markers, low_dose, hardware and collimator on: 0.036 px shift and 0.034 px scale (clean: 0.02 / 0.02);
+# the intensifier's distortion left unmodelled would share 0.77-1.05 px shift and 0.24-0.29 px scale, and stated at
+# that size for every view it cost a flat panel accuracy (clean two-view angle error 0.060 -> 0.138 deg RMS).
+BB_COMMON_SIGMA_PX = 0.04
+BB_SCALE_SIGMA_PX = 0.03
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,6 +136,10 @@ def joint_solve(
     focal_rel_sigma: float = FOCAL_REL_SIGMA,
     principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
     distortion_sigma: tuple[float, ...] = DISTORTION_SIGMA,
+    corner_common_per_sigma: float = CORNER_COMMON_PER_SIGMA,
+    corner_scale_per_sigma: float = CORNER_SCALE_PER_SIGMA,
+    bb_common_sigma_px: float = BB_COMMON_SIGMA_PX,
+    bb_scale_sigma_px: float = BB_SCALE_SIGMA_PX,
     outlier_chi: float = 4.0,
     bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
@@ -124,6 +152,11 @@ def joint_solve(
     Markers in both ``observations`` and ``corners_px`` are used; a marker whose RMS normalised residual
     exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain;
     before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped.
+    ``corner_common_per_sigma``, ``corner_scale_per_sigma`` (in units of the corners' independent noise) and
+    ``bb_common_sigma_px``, ``bb_scale_sigma_px``: the shift (per axis) and scale shared by a tag's four corners /
+    by one marker's BBs in one view (see :data:`CORNER_COMMON_PER_SIGMA`); each group is whitened with them, so
+    the estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot
+    show.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -135,7 +168,11 @@ def joint_solve(
     prior_sigma = np.array([focal_rel_sigma, principal_sigma_px, principal_sigma_px, *distortion_sigma], dtype=np.float64)
     if prior_sigma.shape != (N_INTRINSICS,) or not np.all(prior_sigma > 0):
         raise ValueError(f"the camera priors need focal, principal and 5 distortion sigmas, all > 0; got {prior_sigma.tolist()}")
-    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma)
+    corner_common_sigma_px, corner_scale_sigma_px = corner_common_per_sigma * corner_sigma_px, corner_scale_per_sigma * corner_sigma_px
+    if not (corner_common_sigma_px >= 0 and corner_scale_sigma_px >= 0 and bb_common_sigma_px >= 0 and bb_scale_sigma_px >= 0):
+        raise ValueError(f"shared sigmas must be >= 0, got corner shift {corner_common_sigma_px}, corner scale {corner_scale_sigma_px}, "
+                         f"BB shift {bb_common_sigma_px}, BB scale {bb_scale_sigma_px}")
+    args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     clean = max(sol.marker_chi.values()) <= outlier_chi and all(
@@ -170,11 +207,11 @@ def joint_solve(
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
 
 
-def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[slice, ...], *, min_scale: float = 0.5,
+def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[NDArray[np.int64], ...], *, min_scale: float = 0.5,
                   min_dof: float = 4.0) -> NDArray[np.float64]:
     """Per-row factor (R,) by which each group's assumed noise is off: sqrt(chi-square / redundancy) of the group.
 
-    Variance components: a group's redundancy is the sum of its rows' 1 - leverage (its share of the fit's
+    groups: the row indices of each group. Variance components: a group's redundancy is the sum of its rows' 1 - leverage (its share of the fit's
     degrees of freedom). Rows outside the groups (priors) keep 1; a group with less than ``min_dof`` of
     redundancy keeps 1 (too few to estimate); the factor is at least ``min_scale`` (a few residuals that
     happen to be small must not shrink the bound to nothing).
@@ -228,8 +265,41 @@ def _trim(observations, carm_from_marker, max_px: float, distortion: tuple = ())
     return tuple(out)
 
 
+def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shift_px: float,
+                     scale_px: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Whitening of groups of image points whose errors share a shift and a scale within each group.
+
+    groups_px : each group's image points (N, 2), in row order (rows x0, y0, x1, y1, ...). A group's 2N errors
+    have covariance sigma^2 I + shift^2 (per image axis, all N points together) + scale^2 (every point moved
+    along its radius from the group's centre, by ``scale_px`` at the mean radius; groups of 3 or more points).
+    Returns ``W`` (2N, 2N in all, block diagonal and orthonormal: per group its shared modes first, then an
+    orthonormal complement), the noise (2N,) of each row of ``W @ e`` and which rows are shared modes.
+    ``(W @ e) / noise`` are independent unit-variance residuals with the same sum of squares as the Cholesky
+    whitening of the group's covariance, each group's rows still depending on its own marker alone.
+    """
+    blocks, noise, shared = [], [], []
+    for pts in groups_px:
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        n = len(pts)
+        modes = [np.tile([1.0, 0.0], n) / np.sqrt(n), np.tile([0.0, 1.0], n) / np.sqrt(n)]
+        var = [sigma_px**2 + n * shift_px**2] * 2
+        rel = (pts - pts.mean(axis=0)).ravel()
+        radius = float(np.mean(np.linalg.norm(rel.reshape(-1, 2), axis=1)))
+        if n >= 3 and radius > 0:
+            norm = float(np.linalg.norm(rel))
+            modes.append(rel / norm)
+            var.append(sigma_px**2 + (scale_px * norm / radius) ** 2)  # scale s at the mean radius: s |rel| / radius on the mode
+        m = np.stack(modes, axis=1)
+        q = np.linalg.qr(m, mode="complete")[0]
+        q[:, : m.shape[1]] = m  # the shared modes themselves (already orthonormal), not QR's signs
+        blocks.append(q.T)
+        noise += [np.sqrt(v) for v in var] + [sigma_px] * (2 * n - len(var))
+        shared += [True] * len(var) + [False] * (2 * n - len(var))
+    return block_diag(*blocks), np.asarray(noise), np.asarray(shared)
+
+
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
-           fluoro_sigma_px, corner_sigma_px, prior_sigma, *, loss: str) -> JointSolution:
+           fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, *, loss: str) -> JointSolution:
     m = len(ids)
     poses0 = np.stack([markers0[i] for i in ids])
     pivots = poses0[:, :3, 3].copy()
@@ -255,9 +325,11 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     f_corner_r = np.concatenate([np.full(len(obj), view.corner_radius_px) for i in ids for view, obj, _ in observations[i]])
     dist_sigma = np.repeat([v.distortion_sigma_px for v in dist_views], 2).astype(np.float64)
     f_has = f_dv >= 0
+    wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, bb_scale_px)
     c_obj = np.concatenate([marker_set.by_id(i).tag_corners_mm() for i in ids])
     c_img = np.concatenate([np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids])
     c_mk = np.repeat(np.arange(m), 4)
+    wc, c_noise, _ = _group_whitening([c_img[4 * k : 4 * k + 4] for k in range(m)], corner_sigma_px, corner_common_px, corner_scale_px)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
@@ -280,7 +352,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         if n_dv:
             coef = xs[:, i_dist:].reshape(n, n_dv, 2)[:, f_dv[f_has]]
             uv[:, f_has] += intensifier_shift_px(uv[:, f_has], f_center[f_has], f_corner_r[f_has][:, None], coef)
-        rf = (uv - f_img_a) / fluoro_sigma_px
+        rf = np.einsum("ij,pj->pi", wf, (uv - f_img_a).reshape(n, -1)) / f_noise
         cc = np.einsum("pnij,nj->pni", rot_m[:, c_mk], c_obj) + t_m[:, c_mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
         xy0 = cd[..., :2] / cd[..., 2:3]
@@ -289,7 +361,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
         v = fy0 * s * xy[..., 1] + cy0 + intr[:, 2:3]
-        rc = (np.stack([u, v], axis=-1) - c_img) / corner_sigma_px
+        rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
         prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
 
@@ -337,8 +409,21 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     red = float(np.sum(res**2) / dof)
     jac = np.asarray(sol.jac)
     # Each group's noise (BBs, corners) from its own residuals, not one reduced chi-square for all: a global
-    # factor would also scale the intrinsics' prior, whose size the residuals say nothing about.
-    w = 1.0 / _noise_scales(jac, res, (slice(0, n_f), slice(n_f, n_f + n_c)))
+    # factor would also scale the intrinsics' prior, whose size the residuals say nothing about. Only the
+    # contrasts within a group (tag, marker-view) tell its independent noise: a group's shared modes also
+    # carry the shared shift and scale, which its pose absorbs. The shared rows keep the stated shared part
+    # and take the independent part's factor.
+    # A row whose noise is the independent sigma alone (a contrast, or a shared mode stated as 0) estimates it.
+    f_est, c_est = np.isclose(f_noise, fluoro_sigma_px), np.isclose(c_noise, corner_sigma_px)
+    scales = _noise_scales(jac, res, (np.nonzero(f_est)[0], n_f + np.nonzero(c_est)[0]))
+    # The corners' shared part is stated in proportion to their independent noise (the same blur makes both), so
+    # it takes the same factor; the BBs' shared part (the intensifier's) is stated in px and keeps its size.
+    for est, noise, sigma, start, proportional in ((f_est, f_noise, fluoro_sigma_px, 0, False), (c_est, c_noise, corner_sigma_px, n_f, True)):
+        k = scales[start : start + len(est)][est][:1]  # the group's factor (the same on all its estimating rows)
+        if len(k) and not np.all(est):
+            stated = noise[~est]
+            scales[start + np.nonzero(~est)[0]] = k[0] if proportional else np.sqrt(stated**2 + (k[0] ** 2 - 1.0) * sigma**2) / stated
+    w = 1.0 / scales
     jw = jac * w[:, None]
     cov = np.linalg.pinv(jw.T @ jw)
     return JointSolution(
@@ -349,8 +434,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         used_ids=tuple(ids),
         rejected_ids=(),
         marker_chi=chi,
-        fluoro_rms_px=float(np.sqrt(np.mean(np.sum(rf**2, axis=1)))) * fluoro_sigma_px,
-        corner_rms_px=float(np.sqrt(np.mean(np.sum(rc**2, axis=1)))) * corner_sigma_px,
+        fluoro_rms_px=float(np.sqrt(2.0 * np.mean((wf.T @ (res[:n_f] * f_noise)) ** 2))),
+        corner_rms_px=float(np.sqrt(2.0 * np.mean((wc.T @ (res[n_f : n_f + n_c] * c_noise)) ** 2))),
         reduced_chi2=red,
         chi2=float(np.sum(res**2)),
         converged=bool(sol.success),

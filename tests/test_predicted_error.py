@@ -17,7 +17,9 @@ from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, FluoroDetections
-from drillnav.registration.joint_solve import DISTORTION_SIGMA, FOCAL_REL_SIGMA, PRINCIPAL_SIGMA_PX
+from drillnav.registration.joint_solve import (
+    BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX, CORNER_COMMON_PER_SIGMA, CORNER_SCALE_PER_SIGMA, DISTORTION_SIGMA, FOCAL_REL_SIGMA, PRINCIPAL_SIGMA_PX,
+)
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.transforms import apply, make_transform
@@ -47,11 +49,20 @@ def _video(camera: PinholeCamera, marker_set, corners: dict) -> VideoDetections:
     return VideoDetections(markers=tuple(out), ignored_ids=(), image_size=(camera.width, camera.height))
 
 
-def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None):
+def _shared(rng, px: np.ndarray, shift_px: float, scale_px: float) -> np.ndarray:
+    """A group's image points (N, 2) moved together: one shift (per axis) and one scale (radial, at the mean radius)."""
+    rel = px - px.mean(axis=0)
+    radius = float(np.mean(np.linalg.norm(rel, axis=1)))
+    return px + rng.normal(scale=shift_px, size=2) + rng.normal(scale=scale_px) * rel / radius
+
+
+def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None, shared: bool = False):
     """One registration: (position error mm, angle error deg, 90 % position bound, 90 % angle bound).
 
     ``names``: the scene's views used (default all), or ``views``: CArmViews of other positioner angles;
-    ``marker_ids``: the markers placed (default all); ``full``: also the registration and the predicted error.
+    ``marker_ids``: the markers placed (default all); ``full``: also the registration and the predicted error;
+    ``shared``: each tag's corners and each marker's BBs in each view also moved together, by the shift and scale
+    the joint solve states (as the operating room's blur, exposure and image-intensifier distortion move them).
     """
     true = scene.true_camera
     k = true.camera_matrix.copy()
@@ -76,12 +87,16 @@ def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, vie
         for i, pose in placed.items():
             design = scene.marker_set.by_id(i)
             px = view.project(apply(pose, design.bb_centers_mm)) + rng.normal(scale=BB_SIGMA_PX * noise_scale, size=(len(design.bbs), 2))
+            if shared:
+                px = _shared(rng, px, BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX)
             bbs = tuple(DetectedBB(center_px=p, diameter_px=10.0, large=False) for p in px)
             found.append(DetectedMarker(marker_id=i, bbs=bbs, bb_index=np.arange(len(px)), ring_ellipse=((0.0, 0.0), (1.0, 1.0), 0.0), mirrored=False, identification_cost_mm=0.0))
         dets.append(FluoroDetections(markers=tuple(found), rejected=()))
     poses = register_markers(dets, views, scene.marker_set)
     corners = {i: true.project(apply(t, scene.marker_set.by_id(i).tag_corners_mm())) + rng.normal(scale=CORNER_SIGMA_PX * noise_scale, size=(4, 2))
                for i, t in scene.camera_from_marker(carm_from_drill).items() if i in placed}
+    if shared:
+        corners = {i: _shared(rng, c, CORNER_SIGMA_PX * CORNER_COMMON_PER_SIGMA, CORNER_SIGMA_PX * CORNER_SCALE_PER_SIGMA) for i, c in corners.items()}
     video = _video(camera, scene.marker_set, corners)
     reg = register_video_to_fluoro(video, poses, scene.marker_set, camera)
     entry = scene.corridor_entry_carm_mm
@@ -105,8 +120,24 @@ def test_the_90_percent_bound_covers_about_90_percent(scene, noise_scale):
     assert 0.75 <= cover_pos <= 0.975 and 0.75 <= cover_ang <= 0.975, (cover_pos, cover_ang)
     # The bound is not inflated: the typical error is about half its bound (the median of a 2-D Rayleigh is
     # 0.55 of its 90th percentile; the former scaling gave 0.34 for the position at twice the noise).
+    # The angle's: 0.445 at twice the noise, since the corners' shared shift and scale are stated in proportion to
+    # their independent noise (CORNER_*_PER_SIGMA) and these draws have none: the bound carries errors not drawn.
     assert 0.45 <= float(np.median(a[:, 0] / a[:, 2])) <= 0.75
-    assert 0.45 <= float(np.median(a[:, 1] / a[:, 3])) <= 0.75
+    assert 0.42 <= float(np.median(a[:, 1] / a[:, 3])) <= 0.75
+
+
+@pytest.mark.parametrize("names", [None, ["outlet"]])
+def test_the_bound_covers_errors_shared_by_a_tag_and_by_a_marker_view(scene, names):
+    """Each tag's corners and each marker's BBs in a view also moved together, at the sizes the joint solve states
+    (blur and exposure move a tag's edges together, an image intensifier a marker's BBs): the pose absorbs
+    such errors, so the residuals cannot show them, and the bound must carry them from the stated model.
+    Measured (40 seeded draws, position / angle): two views 0.875 / 0.90, outlet alone 0.825 / 0.875; without the
+    shared terms in the joint solve (the former model) two views 0.775 / 0.775 and outlet alone 0.65 / 0.65, which fails."""
+    rng = np.random.default_rng(20261130)
+    a = np.array([_draw(scene, rng, 1.0, names, shared=True) for _ in range(DRAWS)])
+    cover_pos, cover_ang = float(np.mean(a[:, 0] <= a[:, 2])), float(np.mean(a[:, 1] <= a[:, 3]))
+    assert 0.75 <= cover_pos <= 0.975 and 0.75 <= cover_ang <= 0.975, (cover_pos, cover_ang)
+    assert 0.4 <= float(np.median(a[:, 0] / a[:, 2])) <= 0.75 and 0.4 <= float(np.median(a[:, 1] / a[:, 3])) <= 0.75
 
 
 def test_single_view_with_weak_geometry_is_flagged(scene):
@@ -158,6 +189,8 @@ def test_no_large_single_view_error_goes_unflagged(scene):
         rows.append((ang, a90, pe.reliable))
     a = np.array(rows, dtype=float)
     assert len(a) >= 20
-    assert a[:, 1].max() > 10.0 and a[:, 0].max() > 10.0  # not vacuous: a weak geometry among them (28 deg, bound 28)
+    # Weak geometries among them: with the former noise model, blind to errors shared by a group, one was off by
+    # 28 deg (bound 28, flagged); weighing the shared shifts and scales, the worst is 1.8 deg (bound 2.3).
+    assert a[:, 0].max() > 1.0, a.max(axis=0)
     assert not np.any((a[:, 0] > 10.0) & (a[:, 2] > 0.5)), a[a[:, 0] > 10.0]
     assert not np.any((a[:, 0] > RELIABLE_ANGLE_DEG) & (a[:, 2] > 0.5)), a[a[:, 0] > RELIABLE_ANGLE_DEG]
