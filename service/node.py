@@ -179,8 +179,12 @@ class RegistrationNode:
 
     def _start_worker(self, name: str, target: Callable[[], None]) -> None:
         thread = threading.Thread(target=target, name=f"node-{name}", daemon=True)
-        self._workers[name] = (target, thread)
+        # Started before it is listed: a signal handler that raises (the CLI's, during start-up) can interrupt
+        # start() itself, and the unwinding's join of a listed thread that never started raised RuntimeError
+        # ("cannot join thread before it is started"), turning a clean SIGTERM into a failed start-up. A thread
+        # started but not listed sees the stop event and ends.
         thread.start()
+        self._workers[name] = (target, thread)
 
     def _supervise(self) -> None:
         """Restart any worker thread that died (its loop catches Exceptions; this is for whatever escapes)."""

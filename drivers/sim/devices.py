@@ -139,8 +139,9 @@ class TwinDrillCamera:
         self._next = time.monotonic()
         if len(self._frames) < len(self.poses) and self._render_error is None:
             self._render_stop.clear()
-            self._render_thread = threading.Thread(target=self._render_loop, name="twin-camera-render", daemon=True)
-            self._render_thread.start()
+            thread = threading.Thread(target=self._render_loop, name="twin-camera-render", daemon=True)
+            thread.start()  # before it is kept: __exit__ (on another thread, at shutdown) must never join an unstarted one
+            self._render_thread = thread
         return self
 
     def __exit__(self, *exc) -> None:
