@@ -104,8 +104,38 @@ def detect_markers(
     bb_image = cv2.morphologyEx(tophat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (open_k, open_k)))
     wire_image = tophat - bb_image
     noise = 1.4826 * float(np.median(np.abs(tophat - np.median(tophat))))
-    blobs = _blobs(bb_image, max(0.8, 6 * noise))
-    wire_mask = (wire_image > max(0.5, 5 * noise)).astype(np.uint8)
+    best = None
+    for bb_floor, wire_floor in CONTRAST_FLOORS:
+        found = _find_markers(img, bb_image, wire_image, marker_set, bb_threshold=max(bb_floor, 6 * noise), wire_threshold=max(wire_floor, 5 * noise),
+                              ring_r=ring_r, wire_px=wire_px, magnification_range=magnification_range, pixel_spacing_mm=pixel_spacing_mm)
+        if best is None or len(found.markers) > len(best.markers):
+            best = found
+        # Lower floors only while rings are left unidentified (or none was found): at ordinary contrast the
+        # first level is the whole cost.
+        if best.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected):
+            break
+    return best
+
+
+# Scatter compresses tungsten's contrast in the log image: behind an anti-scatter grid a pelvis still scatters 20-100 %
+# of the primary, which takes a 2 mm BB's top-hat peak from ~5 (no scatter) to ~1.2 (50 %) and ~0.8 (100 %) over a
+# real radiograph's anatomy (tests/test_real_anatomy_background.py). Floors (log units, BBs / wire) that keep
+# anatomy's texture out of a low-scatter view would then lose every marker: when the first level leaves rings
+# unidentified, lower ones are tried (the noise-relative thresholds, 6 and 5 sigma, still hold) and the level that
+# identifies the most markers wins. Identification (pattern, cost and margin) guards against clutter let in.
+CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
+_OVERLAP = "rings overlap in projection"
+_EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
+_OUTSIDE = "ring mostly outside the field of view"
+# Rejections that a lower threshold cannot change: geometry, not contrast.
+_NOT_CONTRAST = (_OVERLAP, _EDGE_ON, _OUTSIDE, "marker id ")
+
+
+def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_threshold: float, wire_threshold: float, ring_r: float, wire_px: float,
+                  magnification_range: tuple[float, float], pixel_spacing_mm: float) -> FluoroDetections:
+    """The rings, BBs and identified markers at one pair of thresholds (log units above the top-hat's background)."""
+    blobs = _blobs(bb_image, bb_threshold)
+    wire_mask = (wire_image > wire_threshold).astype(np.uint8)
     wire_mask = cv2.morphologyEx(wire_mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(wire_mask, connectivity=8)
     min_ring_px = 2 * ring_r * magnification_range[0] / pixel_spacing_mm * 0.3
@@ -120,21 +150,21 @@ def detect_markers(
         pts = np.column_stack(np.nonzero(labels == i)[::-1]).astype(np.float32)
         centre = pts.mean(axis=0)
         if max(w, h) > max_ring_px:
-            rejected.append(RejectedRing(reason="rings overlap in projection", center_px=centre.astype(float)))
+            rejected.append(RejectedRing(reason=_OVERLAP, center_px=centre.astype(float)))
             continue
         if x <= 1 or y <= 1 or x + w >= cols - 1 or y + h >= rows - 1:
             # A ring cut by the field's edge still gives an ellipse from its arc, and its BBs inside the field
             # still count: reject only when too little of the wire is left to fit.
             inner = pts[(pts[:, 0] > 2) & (pts[:, 1] > 2) & (pts[:, 0] < cols - 3) & (pts[:, 1] < rows - 3)]
             if len(inner) < 0.4 * np.pi * min_ring_px * wire_px or _arc_span_deg(inner) < 180.0:
-                rejected.append(RejectedRing(reason="ring mostly outside the field of view", center_px=centre.astype(float)))
+                rejected.append(RejectedRing(reason=_OUTSIDE, center_px=centre.astype(float)))
                 continue
             pts = inner
         ellipse = cv2.fitEllipse(pts)
         (cx, cy), (d1, d2), angle = ellipse
         major, minor = max(d1, d2) / 2.0, min(d1, d2) / 2.0
         if minor < 0.25 * major:
-            rejected.append(RejectedRing(reason="marker seen edge-on (ring ellipse too flat to identify)", center_px=np.array([cx, cy])))
+            rejected.append(RejectedRing(reason=_EDGE_ON, center_px=np.array([cx, cy])))
             continue
         inside = [b for b in blobs if _inside(b[0], ellipse, 0.9)]
         if len(inside) < 3:
