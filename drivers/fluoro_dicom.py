@@ -1,10 +1,13 @@
 """Fluoroscopy intake: XA, XRF, DX/CR and secondary-capture DICOM images with their C-arm geometry.
 
 Pixels become a float32 log-attenuation image (larger = more attenuation).
-MONOCHROME1 values follow detector intensity and are converted with
--log(I / I0), I0 estimated from the brightest 0.5 %; log-processed
-MONOCHROME2 images (the twin's, or Pixel Intensity Relationship LOG) are used
-as they are; other MONOCHROME2 images are mapped by their 0.5-99.5 % range
+What the stored values mean is read from Pixel Intensity Relationship (0028,1040)
+and its Sign (0028,1041) when the image states them (XA and XRF do): LIN values
+follow the X-ray intensity and are converted with -log(I / I0), I0 from the
+brightest 0.5 %; LOG values are used as they are when higher values mean less
+intensity (Sign -1) and negated when they mean more (Sign +1). Without them:
+MONOCHROME1 values follow detector intensity (as LIN); the twin's images are
+log attenuation; other MONOCHROME2 images are mapped by their 0.5-99.5 % range
 onto typical line integrals (an approximation: calibrate such a C-arm).
 Geometry comes from a calibrated projection-matrix JSON when given (it
 overrides), else from the positioner attributes; anything missing or
@@ -109,6 +112,34 @@ def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> 
     return view, "positioner"
 
 
+def _intensity_mapping(ds, name: str) -> str:
+    """How stored values relate to the X-ray intensity: 'attenuation' (log, higher = less intensity), 'log intensity',
+    'intensity', 'inverted intensity', or 'display' (unknown: range-mapped).
+
+    Pixel Intensity Relationship (0028,1040) LIN / LOG with its Sign (0028,1041): +1 lower values mean less
+    intensity, -1 higher values mean less intensity (PS3.3 C.8.11.3). A stated relationship other than LIN or
+    LOG (DISP: processed for display) falls back to the photometric interpretation.
+    """
+    relation = str(getattr(ds, "PixelIntensityRelationship", "") or "").strip().upper()
+    raw_sign = getattr(ds, "PixelIntensityRelationshipSign", None)
+    try:
+        sign = None if raw_sign in (None, "") else int(raw_sign)
+    except (TypeError, ValueError):
+        raise DicomUnreadable(f"{name}: Pixel Intensity Relationship Sign (0028,1041) is {raw_sign!r}, expected +1 or -1") from None
+    if sign not in (None, 1, -1):
+        raise DicomUnreadable(f"{name}: Pixel Intensity Relationship Sign (0028,1041) is {sign}, expected +1 or -1")
+    if relation == "LOG":
+        # Without a sign, the older convention: log-processed as attenuation (higher = less intensity).
+        return "log intensity" if sign == 1 else "attenuation"
+    if relation == "LIN":
+        return "inverted intensity" if sign == -1 else "intensity"
+    if str(getattr(ds, "Manufacturer", "")) == "drillnav digital twin":
+        return "attenuation"
+    if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
+        return "intensity"
+    return "display"
+
+
 def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> list[FluoroImage]:
     """Every frame of a fluoroscopy DICOM file as :class:`FluoroImage` (one per frame).
 
@@ -137,8 +168,7 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     view, geometry_source = _geometry(ds, p, rows, cols, Path(projection) if projection else None)
     slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
     intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
-    photometric = str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2"))
-    log_processed = str(getattr(ds, "Manufacturer", "")) == "drillnav digital twin" or "LOG" in str(getattr(ds, "PixelIntensityRelationship", "")).upper()
+    mapping = _intensity_mapping(ds, p.name)
     try:
         view_name = f"p{float(ds.PositionerPrimaryAngle):+.0f}s{float(ds.PositionerSecondaryAngle):+.0f}"
     except (AttributeError, TypeError, ValueError):
@@ -146,11 +176,19 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     out = []
     for i, frame in enumerate(frames):
         values = frame * slope + intercept
-        if photometric == "MONOCHROME1":
-            # Displayed white at the minimum: values follow detector intensity (low behind bone).
+        if mapping == "intensity":
+            # Values follow the detector's intensity (low behind bone): -log(I / I0).
             i0 = np.percentile(values, 99.5)
             values = -np.log(np.clip(values, 1e-3, None) / max(i0, 1e-3))
-        elif not log_processed:
+        elif mapping == "inverted intensity":
+            # Values fall as the intensity rises: I = (the largest value) - value.
+            flipped = values.max() - values
+            i0 = np.percentile(flipped, 99.5)
+            values = -np.log(np.clip(flipped, 1e-3, None) / max(i0, 1e-3))
+        elif mapping == "log intensity":
+            # log(I) up to a gain and an offset: negated, and the brightest 0.5 % taken as no attenuation.
+            values = np.percentile(values, 99.5) - values
+        elif mapping == "display":
             # A processed MONOCHROME2 image of unknown scale: map its range onto typical line integrals.
             lo, hi = np.percentile(values, [0.5, 99.5])
             values = (values - lo) / max(hi - lo, 1e-6) * 6.0

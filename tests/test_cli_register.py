@@ -136,3 +136,46 @@ def test_scene_files_validate_against_their_schemas(scene_dir, tmp_path):
     (tmp_path / "t.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="carm_from_ct"):
         read_truth(tmp_path / "t.json")
+
+
+@pytest.mark.parametrize("relation, sign", [("LOG", -1), ("LOG", 1), ("LIN", 1), ("LIN", -1)])
+def test_pixel_intensity_relationship_and_sign_are_honoured(scene_dir, tmp_path, relation, sign):
+    """The same shot stored as each (0028,1040) / (0028,1041) pair reads back as the same log attenuation, and its markers
+    are found where they are in the original: a LOG image whose values rise with intensity (Sign +1, common on XA)
+    used as it was would have inverted every BB."""
+    from drillnav.registration.fluoro_markers import detect_markers
+    from drillnav.schemas.markers import read_marker_set
+
+    (ref,) = read_fluoro(scene_dir / "fluoro/inlet.dcm")
+    attenuation = ref.pixels_log.astype(np.float64)
+    intensity = 60000.0 * np.exp(-attenuation)  # what the detector measured (up to a gain)
+    stored = {("LOG", -1): 1000.0 * attenuation + 200.0, ("LOG", 1): 1000.0 * np.log(intensity),
+              ("LIN", 1): intensity, ("LIN", -1): 65000.0 - intensity}[(relation, sign)]
+    ds = pydicom.dcmread(str(scene_dir / "fluoro/inlet.dcm"))
+    ds.RescaleSlope, ds.RescaleIntercept = "1", "0"
+    ds.PixelData = np.clip(np.round(stored), 0, 65535).astype(np.uint16).tobytes()
+    ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign = relation, sign
+    ds.save_as(str(tmp_path / "x.dcm"))
+    shutil.copy(scene_dir / "fluoro/inlet.json", tmp_path / "x.json")
+    (img,) = read_fluoro(tmp_path / "x.dcm")
+    # The same image up to a gain and an offset, with the same polarity (more attenuation = larger).
+    a, b = np.polyfit(attenuation.ravel(), img.pixels_log.ravel().astype(np.float64), 1)
+    assert a > 0, f"{relation} sign {sign} read with inverted polarity"
+    # LIN with Sign -1 leaves the intensity's zero unknown (taken at the largest value): close, not exact.
+    assert np.corrcoef(attenuation.ravel(), img.pixels_log.ravel())[0, 1] > (0.99 if (relation, sign) == ("LIN", -1) else 0.999)
+    marker_set = read_marker_set(scene_dir / "markers.json")
+    want = {m.marker_id: m for m in detect_markers(ref.pixels_log, marker_set).markers}
+    got = {m.marker_id: m for m in detect_markers(img.pixels_log / a, marker_set).markers}
+    assert set(got) == set(want) and len(want) >= 4
+    for i, m in want.items():
+        c0 = np.array(sorted(tuple(b.center_px) for b in m.bbs))
+        c1 = np.array(sorted(tuple(b.center_px) for b in got[i].bbs))
+        assert c0.shape == c1.shape and np.abs(c0 - c1).max() < (0.2 if (relation, sign) == ("LIN", -1) else 0.1)
+
+
+def test_a_malformed_intensity_sign_is_named(scene_dir, tmp_path):
+    ds = pydicom.dcmread(str(scene_dir / "fluoro/inlet.dcm"))
+    ds.PixelIntensityRelationshipSign = 2
+    ds.save_as(str(tmp_path / "s.dcm"))
+    with pytest.raises(DicomUnreadable, match=r"Pixel Intensity Relationship Sign \(0028,1041\) is 2"):
+        read_fluoro(tmp_path / "s.dcm")

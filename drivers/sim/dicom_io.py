@@ -68,6 +68,8 @@ def write_xa(
     ds.XRayTubeCurrent = "5"
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
+    # Log attenuation: higher values mean less X-ray intensity (PS3.3 C.8.11.3).
+    ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign = "LOG", -1
     ds.Rows, ds.Columns = image_log.shape
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
     ds.RescaleIntercept, ds.RescaleSlope = "0", f"{1.0 / LOG_SCALE:.8f}"
