@@ -104,25 +104,78 @@ def detect_markers(
     bb_image = cv2.morphologyEx(tophat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (open_k, open_k)))
     wire_image = tophat - bb_image
     noise = 1.4826 * float(np.median(np.abs(tophat - np.median(tophat))))
-    best = None
-    for bb_floor, wire_floor in CONTRAST_FLOORS:
+    result = None
+    for level, (bb_floor, wire_floor) in enumerate(CONTRAST_FLOORS):
         found = _find_markers(img, bb_image, wire_image, marker_set, bb_threshold=max(bb_floor, 6 * noise), wire_threshold=max(wire_floor, 5 * noise),
                               ring_r=ring_r, wire_px=wire_px, magnification_range=magnification_range, pixel_spacing_mm=pixel_spacing_mm)
-        if best is None or len(found.markers) > len(best.markers):
-            best = found
-        # Lower floors only while rings are left unidentified (or none was found): at ordinary contrast the
-        # first level is the whole cost.
-        if best.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected):
+        result = found if result is None else _add_new_markers(result, found, marker_set)
+        # Lower floors only for a view the first level left with at most one marker, and only while rings are
+        # left unidentified for a contrast reason: at ordinary contrast the first level is the whole cost, and a
+        # view with markers found keeps what it has (in a cluttered view a lower floor can let a neighbour's or
+        # the hardware's blobs into a ring: a wrongly assigned pattern was seen on the twin's operating room).
+        if (level == 0 and len(result.markers) > 1) or (result.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected)):
             break
-    return best
+    return result
+
+
+def _fits_its_plane(marker: DetectedMarker, marker_set: MarkerSet, *, min_bbs: int = 5, max_rms_px: float = 3.0) -> bool:
+    """Whether the BBs matched to the design lie where one view of the marker's plane puts them.
+
+    The design BBs lie in the marker's plane (z = 0) within 15 mm of its centre, hundreds of millimetres from the
+    source: their images are an affine map of their (x, y) to within ~2 px of perspective at the steepest tilt.
+    Fitted to at least ``min_bbs`` (six unknowns, 2 x 5 equations), its RMS residual shows BBs taken from clutter
+    or a neighbour (tens of pixels); a homography would fit five wrong BBs nearly exactly. It cannot see the marker's
+    own BBs assigned in mirror image (a reflection is affine).
+    """
+    ok = np.asarray(marker.bb_index) >= 0
+    if ok.sum() < min_bbs:
+        return False
+    plane = marker_set.by_id(marker.marker_id).bb_centers_mm[np.asarray(marker.bb_index)[ok], :2]
+    img = np.array([b.center_px for b, keep in zip(marker.bbs, ok) if keep])
+    design = np.column_stack([plane, np.ones(len(plane))])
+    coef, *_ = np.linalg.lstsq(design, img, rcond=None)
+    return float(np.sqrt(np.mean(np.sum((design @ coef - img) ** 2, axis=1)))) <= max_rms_px
+
+
+def _add_new_markers(found: FluoroDetections, lower: FluoroDetections, marker_set: MarkerSet, *, same_bb_px: float = 2.0,
+                     same_ring_px: float = 30.0) -> FluoroDetections:
+    """``found`` with the markers a lower threshold identified that it had not, on BBs none of its markers uses, whose
+    BBs fit one view of their plane (:func:`_fits_its_plane`).
+
+    A marker found at a higher threshold keeps its detection as it was (a lower one can let clutter into its BBs).
+    The blobs are the lower level's (more of the unidentified markers' BBs), each of ``found``'s markers' BBs in
+    place of its lower-level twin, so that a marker's BBs are among the view's blobs exactly as
+    :func:`.marker_pose.register_markers` expects; the unidentified rings are the lower level's, less those of a
+    marker now identified.
+    """
+    markers = {m.marker_id: m for m in found.markers}
+    taken = [b.center_px for m in found.markers for b in m.bbs]
+    for m in lower.markers:
+        centres = np.array([b.center_px for b in m.bbs])
+        if m.marker_id in markers or (taken and np.min(np.linalg.norm(centres[:, None] - np.array(taken)[None], axis=2)) < same_bb_px):
+            continue
+        if not _fits_its_plane(m, marker_set):
+            continue
+        markers[m.marker_id] = m
+        taken += list(centres)
+    if len(markers) == len(found.markers):
+        return found
+    kept_bbs = [b for m in found.markers for b in m.bbs]
+    own = np.array([b.center_px for b in kept_bbs]).reshape(-1, 2)
+    blobs = tuple(kept_bbs) + tuple(b for b in lower.blobs if not len(own) or np.min(np.linalg.norm(own - b.center_px, axis=1)) >= same_bb_px)
+    centres = np.array([m.ring_ellipse[0] for m in markers.values()])
+    rejected = tuple(r for r in lower.rejected if np.min(np.linalg.norm(centres - r.center_px, axis=1)) >= same_ring_px)
+    return FluoroDetections(markers=tuple(sorted(markers.values(), key=lambda m: m.marker_id)), rejected=rejected, blobs=blobs)
 
 
 # Scatter compresses tungsten's contrast in the log image: behind an anti-scatter grid a pelvis still scatters 20-100 %
 # of the primary, which takes a 2 mm BB's top-hat peak from ~5 (no scatter) to ~1.2 (50 %) and ~0.8 (100 %) over a
 # real radiograph's anatomy (tests/test_real_anatomy_background.py). Floors (log units, BBs / wire) that keep
 # anatomy's texture out of a low-scatter view would then lose every marker: when the first level leaves rings
-# unidentified, lower ones are tried (the noise-relative thresholds, 6 and 5 sigma, still hold) and the level that
-# identifies the most markers wins. Identification (pattern, cost and margin) guards against clutter let in.
+# unidentified in a view left with at most one marker, lower ones are tried (the noise-relative thresholds, 6 and 5
+# sigma, still hold) and the markers they
+# identify on BBs no marker already found uses are added; a marker found at a higher level keeps that detection.
+# Identification (pattern, cost and margin) guards against clutter let in.
 CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
