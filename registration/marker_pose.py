@@ -119,11 +119,27 @@ def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.flo
 
 
 def _try_solve(marker_id: int, observations, max_residual_px: float) -> MarkerPose | None:
-    """A marker whose BBs give no planar pose in any view (nearly collinear) is left out, not fatal to the others."""
+    """A marker whose BBs give no planar pose in any view (nearly collinear) is left out, not fatal to the others.
+
+    Solved over all the views that identified it; when that does not converge and exactly one view alone does,
+    that view's pose is kept: the other view's BBs were matched wrongly (clutter inside the ring, a BB merged with
+    metal) and must not leave the marker without a pose. When several views converge alone but not together,
+    nothing tells which is right (each has its mirror), and the joint result stands, not converged.
+    """
     try:
-        return _solve_one(marker_id, observations, max_residual_px)
+        pose = _solve_one(marker_id, observations, max_residual_px)
     except ValueError:
-        return None
+        pose = None
+    if (pose is not None and pose.converged) or len(observations) < 2:
+        return pose
+    alone = []
+    for obs in observations:
+        try:
+            alone.append(_solve_one(marker_id, [obs], max_residual_px))
+        except ValueError:
+            continue
+    good = [p for p in alone if p.converged]
+    return good[0] if len(good) == 1 else pose
 
 
 def register_markers(
