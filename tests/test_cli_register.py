@@ -141,7 +141,7 @@ def test_scene_files_validate_against_their_schemas(scene_dir, tmp_path):
 @pytest.mark.parametrize("relation, sign", [("LOG", -1), ("LOG", 1), ("LIN", 1), ("LIN", -1)])
 def test_pixel_intensity_relationship_and_sign_are_honoured(scene_dir, tmp_path, relation, sign):
     """The same shot stored as each (0028,1040) / (0028,1041) pair reads back as the same log attenuation, and its markers
-    are found where they are in the original: a LOG image whose values rise with intensity (Sign +1, common on XA)
+    are found where they are in the original: a LOG image whose values rise with intensity (Sign +1, which the standard allows)
     used as it was would have inverted every BB."""
     from drillnav.registration.fluoro_markers import detect_markers
     from drillnav.schemas.markers import read_marker_set
