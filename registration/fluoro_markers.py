@@ -109,10 +109,8 @@ def detect_markers(
         found = _find_markers(img, bb_image, wire_image, marker_set, bb_threshold=max(bb_floor, 6 * noise), wire_threshold=max(wire_floor, 5 * noise),
                               ring_r=ring_r, wire_px=wire_px, magnification_range=magnification_range, pixel_spacing_mm=pixel_spacing_mm)
         result = found if result is None else _add_new_markers(result, found, marker_set)
-        # Lower floors only for a view the first level left with at most one marker, and only while rings are
-        # left unidentified for a contrast reason: at ordinary contrast the first level is the whole cost, and a
-        # view with markers found keeps what it has (in a cluttered view a lower floor can let a neighbour's or
-        # the hardware's blobs into a ring: a wrongly assigned pattern was seen on the twin's operating room).
+        # See CONTRAST_FLOORS: lower floors only for a view the first level left with at most one marker, and only
+        # while rings are left unidentified for a contrast reason.
         if (level == 0 and len(result.markers) > 1) or (result.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected)):
             break
     return result
@@ -169,13 +167,14 @@ def _add_new_markers(found: FluoroDetections, lower: FluoroDetections, marker_se
 
 
 # Scatter compresses tungsten's contrast in the log image: behind an anti-scatter grid a pelvis still scatters 20-100 %
-# of the primary, which takes a 2 mm BB's top-hat peak from ~5 (no scatter) to ~1.2 (50 %) and ~0.8 (100 %) over a
+# of the primary, which takes a 2 mm BB's top-hat peak from ~5.8 (no scatter) to ~1.25 (50 %) and ~0.8 (100 %) over a
 # real radiograph's anatomy (tests/test_real_anatomy_background.py). Floors (log units, BBs / wire) that keep
-# anatomy's texture out of a low-scatter view would then lose every marker: when the first level leaves rings
-# unidentified in a view left with at most one marker, lower ones are tried (the noise-relative thresholds, 6 and 5
-# sigma, still hold) and the markers they
-# identify on BBs no marker already found uses are added; a marker found at a higher level keeps that detection.
-# Identification (pattern, cost and margin) guards against clutter let in.
+# anatomy's texture out of a low-scatter view would then lose every marker. So when the first level leaves a view
+# with at most one marker and a ring unidentified for a contrast reason, lower floors are tried (the noise-relative
+# thresholds, 6 and 5 sigma, still hold); the markers they identify are added when their BBs are new and fit their
+# plane (_add_new_markers), and a marker found at a higher level keeps that detection. Views with markers found keep
+# what they have: in a cluttered view a lower floor can let a neighbour's or the hardware's blobs into a ring (a
+# wrongly assigned pattern was seen on the twin's operating room).
 CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
