@@ -324,12 +324,14 @@ def test_names_can_be_bound_to_a_network_interface(site, interfaces, arrives):
     assert (b"frame" in inbox.payloads()) is arrives
 
 
-_ANY = free_port()  # is_loopback reads the host only and never binds: any port the OS hands out will do
+# is_loopback reads the host only and never binds: any port the OS hands out will do. It is put in inside the test, so
+# the test's id stays the same from one collection to the next.
 @pytest.mark.parametrize("endpoint, loopback", [
-    (f"tcp/127.0.0.1:{_ANY}", True), (f"tls/127.0.0.2:{_ANY}", True), (f"tcp/[::1]:{_ANY}", True), (f"tcp/localhost:{_ANY}", True),
-    ("unixsock-stream//run/drillnav.sock", True), (f"tcp/127.0.0.1:{_ANY}?iface=lo", True),
-    (f"tcp/0.0.0.0:{_ANY}", False), (f"tcp/[::]:{_ANY}", False), (f"tls/navcart.local:{_ANY}", False),
-    (f"tcp/192.168.1.20:{_ANY}", False), ("serial//dev/ttyUSB0", False),
+    ("tcp/127.0.0.1:{port}", True), ("tls/127.0.0.2:{port}", True), ("tcp/[::1]:{port}", True), ("tcp/localhost:{port}", True),
+    ("unixsock-stream//run/drillnav.sock", True), ("tcp/127.0.0.1:{port}?iface=lo", True),
+    ("tcp/0.0.0.0:{port}", False), ("tcp/[::]:{port}", False), ("tls/navcart.local:{port}", False),
+    ("tcp/192.168.1.20:{port}", False), ("serial//dev/ttyUSB0", False),
 ])
 def test_what_counts_as_loopback(endpoint, loopback):
+    endpoint = endpoint.format(port=free_port())
     assert is_loopback(endpoint) is loopback

@@ -104,7 +104,8 @@ def test_kwire_in_fluoroscopy_rests_on_the_entry(scene):
 def test_voxel_anatomy_scene(tmp_path):
     """A voxel CT as the patient: markers on its skin, the DRR of the full CT in the fluoroscopy, a coarser copy handed on."""
     from drillnav.drivers.sim import anatomy
-    from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy, handed_copy
+    from drillnav.drivers.sim.ct_anatomy import RENDER_STEP_MM, VoxelAnatomy, handed_copy, render_stride
+    from drillnav.registration.drr import render_drr
     from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
 
     ct = make_pelvis_ct(seed=1, voxel_mm=(2.0, 2.0, 2.0))
@@ -120,6 +121,16 @@ def test_voxel_anatomy_scene(tmp_path):
         p_ct = invert(scene.carm_from_ct) @ t[:, 3]
         assert ct.sample(p_ct[:3] - 3.0 * (invert(scene.carm_from_ct)[:3, :3] @ t[:3, 2]))[0] > -200  # body under it
         assert ct.sample(p_ct[:3] + 3.0 * (invert(scene.carm_from_ct)[:3, :3] @ t[:3, 2]))[0] < -500  # air above it
+    # A ray through every 2nd pixel (the CT's 2 mm voxels are wider than 2 pixels at the patient), bilinear in
+    # between: against a ray through every pixel of a 160 px square at the detector's centre, well under photon noise
+    # (0.01-0.05 in log units).
+    view = scene.views["outlet"]
+    assert render_stride(patient.truth_mu, view, scene.carm_from_ct) == 2
+    line = patient.line_integrals(view, scene.carm_from_ct)
+    u, v = view.columns // 2, view.rows // 2
+    every_ray = render_drr(patient.truth_mu, view, scene.carm_from_ct, roi=(u - 80, v - 80, u + 80, v + 80), step_mm=RENDER_STEP_MM)
+    diff = np.abs(line[v - 80 : v + 80, u - 80 : u + 80] - every_ray)
+    assert every_ray.max() > 2.0 and np.sqrt(np.mean(diff**2)) < 0.005 and np.percentile(diff, 99) < 0.02, (np.sqrt(np.mean(diff**2)), diff.max())
     img = scene.fluoro_log["outlet"]
     bb = scene.views["outlet"].project(next(iter(scene.carm_from_marker.values()))[:3, 3])[0]
     assert img[int(round(bb[1])), int(round(bb[0]))] > np.median(img) + 1.0

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
@@ -26,10 +27,11 @@ from drillnav.registration.volume import Volume
 
 from .anatomy import Corridor
 
-__all__ = ["VoxelAnatomy", "handed_copy", "SKIN_HU"]
+__all__ = ["VoxelAnatomy", "handed_copy", "render_line_integrals", "render_stride", "SKIN_HU"]
 
 SKIN_HU = -400.0  # body / air boundary
 RENDER_STEP_MM = 0.35
+RENDER_STRIDE = 2  # a ray through every 2nd pixel where the CT's voxels are that coarse (render_stride)
 DRR_CACHE_SIZE = 24  # ~7.6 MB each at 976x976
 
 
@@ -56,7 +58,7 @@ class VoxelAnatomy:
         return cls(volume=volume, corridor=c, truth_mu=DrrVolume.from_ct(volume))
 
     def line_integrals(self, view: CArmView, carm_from_ct: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step.
+        """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step (:func:`render_line_integrals`).
 
         The last few are kept: a study shoots the same patient and view under
         several degradations, and one DRR of the CT takes tens of seconds.
@@ -66,7 +68,7 @@ class VoxelAnatomy:
         if key not in cache:
             if len(cache) >= DRR_CACHE_SIZE:
                 cache.pop(next(iter(cache)))
-            cache[key] = render_drr(self.truth_mu, view, carm_from_ct, step_mm=RENDER_STEP_MM).astype(np.float64)
+            cache[key] = render_line_integrals(self.truth_mu, view, carm_from_ct)
         return cache[key].copy()
 
     def skin_along(self, inside_mm: NDArray[np.float64], outward: NDArray[np.float64], *, max_mm: float = 400.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -103,6 +105,32 @@ class VoxelAnatomy:
         ijk = np.stack([body[:, 2] * 4, body[:, 1] * 4, body[:, 0]], axis=1).astype(np.float64)
         pts = ijk @ self.volume.patient_from_voxel[:3, :3].T + self.volume.patient_from_voxel[:3, 3]
         return float(np.max(pts @ carm_from_ct[1, :3] + carm_from_ct[1, 3]))
+
+
+def render_stride(truth_mu: DrrVolume, view: CArmView, carm_from_ct: NDArray[np.float64]) -> int:
+    """Every how many pixels a ray is cast: ``RENDER_STRIDE`` where that many pixels at the CT's centre span no
+    more than its finest voxel, else 1 (a CT finer than the detector's pixels at the patient gets every ray)."""
+    centre_ct = truth_mu.patient_from_voxel[:3, :3] @ ((np.asarray(truth_mu.mu.shape[::-1]) - 1) / 2.0) + truth_mu.patient_from_voxel[:3, 3]
+    centre_carm = np.asarray(carm_from_ct, dtype=np.float64)[:3, :3] @ centre_ct + np.asarray(carm_from_ct, dtype=np.float64)[:3, 3]
+    pixel_at_patient_mm = min(view.pixel_spacing_mm) / float(view.magnification(centre_carm[None, :])[0])
+    return RENDER_STRIDE if RENDER_STRIDE * pixel_at_patient_mm <= float(np.min(truth_mu.spacing_mm)) else 1
+
+
+def render_line_integrals(truth_mu: DrrVolume, view: CArmView, carm_from_ct: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Line integrals (rows, columns) of the twin's CT anatomy: rays through every :func:`render_stride`-th pixel,
+    bilinear in between.
+
+    With the real chest CT (0.7 mm voxels) a ray every 2nd pixel differs from a ray through every pixel by 0.001
+    RMS (p99 0.003) in log units, against 0.04-0.05 of photon noise at the twin's full dose, and takes a fifth
+    of the time; ``tests/test_scene.py::test_voxel_anatomy_scene`` bounds it.
+    """
+    stride = render_stride(truth_mu, view, carm_from_ct)
+    coarse = render_drr(truth_mu, view, carm_from_ct, stride=stride, step_mm=RENDER_STEP_MM)
+    if stride == 1:
+        return coarse.astype(np.float64)
+    # Coarse sample (r, c) lies on pixel (stride r, stride c).
+    map_x, map_y = np.meshgrid(np.arange(view.columns, dtype=np.float32) / stride, np.arange(view.rows, dtype=np.float32) / stride)
+    return cv2.remap(coarse, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
 
 
 def handed_copy(volume: Volume, *, seed: int, voxel_scale: float = 1.25, noise_hu: float = 15.0, blur_mm: float = 0.6) -> Volume:
