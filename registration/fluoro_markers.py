@@ -106,7 +106,9 @@ def detect_markers(
     noise = 1.4826 * float(np.median(np.abs(tophat - np.median(tophat))))
     result = None
     for level, (bb_floor, wire_floor) in enumerate(CONTRAST_FLOORS):
-        found = _find_markers(img, bb_image, wire_image, marker_set, bb_threshold=max(bb_floor, 6 * noise), wire_threshold=max(wire_floor, 5 * noise),
+        wire_threshold = max(wire_floor, 5 * noise)
+        found = _find_markers(img, bb_image, wire_image, marker_set, bb_threshold=max(bb_floor, 6 * noise), wire_threshold=wire_threshold,
+                              wire_low=wire_threshold if WIRE_HYSTERESIS is None else max(WIRE_HYSTERESIS * wire_threshold, 2.5 * noise),
                               ring_r=ring_r, wire_px=wire_px, magnification_range=magnification_range, pixel_spacing_mm=pixel_spacing_mm)
         result = found if result is None else _add_new_markers(result, found, marker_set)
         # See CONTRAST_FLOORS: lower floors only for a view the first level left with at most one marker, and only
@@ -176,6 +178,12 @@ def _add_new_markers(found: FluoroDetections, lower: FluoroDetections, marker_se
 # what they have: in a cluttered view a lower floor can let a neighbour's or the hardware's blobs into a ring (a
 # wrongly assigned pattern was seen on the twin's operating room).
 CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
+# The wire is traced by hysteresis: pixels over WIRE_HYSTERESIS x its threshold (and over 2.5 sigma of noise) that
+# connect to one over the threshold. A 0.8 mm wire is a thin ridge as noisy as the pixels under it; with no detector
+# blur, or dense anatomy behind it, a single threshold broke each ring into arcs that fit flat ellipses ("edge-on")
+# holding no BBs (tests/test_real_anatomy_background.py: on 12 seeds each, a single threshold failed 8 sharp scenes
+# and 7 dense ones, hysteresis 1 of each).
+WIRE_HYSTERESIS = 0.5
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
 _OUTSIDE = "ring mostly outside the field of view"
@@ -183,80 +191,133 @@ _OUTSIDE = "ring mostly outside the field of view"
 _NOT_CONTRAST = (_OVERLAP, _EDGE_ON, _OUTSIDE, "marker id ")
 
 
-def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_threshold: float, wire_threshold: float, ring_r: float, wire_px: float,
+def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_threshold: float, wire_threshold: float, wire_low: float, ring_r: float, wire_px: float,
                   magnification_range: tuple[float, float], pixel_spacing_mm: float) -> FluoroDetections:
     """The rings, BBs and identified markers at one pair of thresholds (log units above the top-hat's background)."""
     blobs = _blobs(bb_image, bb_threshold)
-    wire_mask = (wire_image > wire_threshold).astype(np.uint8)
-    wire_mask = cv2.morphologyEx(wire_mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(wire_mask, connectivity=8)
     min_ring_px = 2 * ring_r * magnification_range[0] / pixel_spacing_mm * 0.3
     max_ring_px = 2 * ring_r * magnification_range[1] / pixel_spacing_mm * 1.1
-    rows, cols = img.shape
     markers: list[DetectedMarker] = []
     rejected: list[RejectedRing] = []
-    for i in range(1, n):
-        x, y, w, h, area = stats[i]
-        if max(w, h) < min_ring_px or area < 100:
-            continue
-        pts = np.column_stack(np.nonzero(labels == i)[::-1]).astype(np.float32)
-        centre = pts.mean(axis=0)
-        if max(w, h) > max_ring_px:
-            rejected.append(RejectedRing(reason=_OVERLAP, center_px=centre.astype(float)))
-            continue
-        if x <= 1 or y <= 1 or x + w >= cols - 1 or y + h >= rows - 1:
-            # A ring cut by the field's edge still gives an ellipse from its arc, and its BBs inside the field
-            # still count: reject only when too little of the wire is left to fit.
-            inner = pts[(pts[:, 0] > 2) & (pts[:, 1] > 2) & (pts[:, 0] < cols - 3) & (pts[:, 1] < rows - 3)]
-            if len(inner) < 0.4 * np.pi * min_ring_px * wire_px or _arc_span_deg(inner) < 180.0:
-                rejected.append(RejectedRing(reason=_OUTSIDE, center_px=centre.astype(float)))
+    ring = dict(blobs=blobs, marker_set=marker_set, ring_r=ring_r, wire_px=wire_px, min_ring_px=min_ring_px, max_ring_px=max_ring_px, shape=img.shape)
+    for piece, strong_pieces in _wire_components(wire_image, high=wire_threshold, low=wire_low, min_extent_px=min_ring_px):
+        found = _ring_marker(*piece, **ring)
+        if isinstance(found, RejectedRing) and strong_pieces:
+            # What hysteresis grew did not identify a marker (two rings joined, anatomy's texture bent its
+            # ellipse): the pieces over the high threshold alone, as a single threshold would have found them.
+            alone = [_ring_marker(*p, **ring) for p in strong_pieces]
+            if any(isinstance(r, DetectedMarker) for r in alone):
+                markers += [r for r in alone if isinstance(r, DetectedMarker)]
+                rejected += [r for r in alone if isinstance(r, RejectedRing)]
                 continue
-            pts = inner
-        ellipse = cv2.fitEllipse(pts)
-        (cx, cy), (d1, d2), angle = ellipse
-        major, minor = max(d1, d2) / 2.0, min(d1, d2) / 2.0
-        if minor < 0.25 * major:
-            rejected.append(RejectedRing(reason=_EDGE_ON, center_px=np.array([cx, cy])))
-            continue
-        inside = [b for b in blobs if _inside(b[0], ellipse, 0.9)]
-        if len(inside) < 3:
-            rejected.append(RejectedRing(reason=f"only {len(inside)} BBs inside the ring", center_px=np.array([cx, cy])))
-            continue
-        scale = major / ring_r  # px per mm at the marker
-        centers = np.array([b[0] for b in inside])
-        diam_px = np.array([b[1] for b in inside])
-        plane = _rectify(centers, ellipse) / scale
-        # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
-        ident, last_error = None, None
-        order = np.argsort(np.linalg.norm(plane, axis=1))
-        # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
-        # blob smaller than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under metal)
-        # makes every BB look large: only then each candidate, as the 2.0 mm central BB, calibrates them
-        # itself; identify's cost and margin still decide.
-        for own_scale in (False, True):
-            for c in order[:3]:
-                sizes_mm = diam_px * (2.0 / (diam_px[c] if own_scale else diam_px.min()))
-                if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
-                    continue
-                try:
-                    candidate = identify(plane - plane[c], sizes_mm, marker_set)
-                except MarkerNotIdentified as exc:
-                    last_error = exc
-                    continue
-                if ident is None or candidate.cost < ident.cost:
-                    ident, diam_mm = candidate, sizes_mm
-            if ident is not None:
-                break
-        if ident is None:
-            reason = str(last_error) if last_error else "no central BB found inside the ring"
-            rejected.append(RejectedRing(reason=reason, center_px=np.array([cx, cy])))
-            continue
-        bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
-        markers.append(DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost))
+        if isinstance(found, DetectedMarker):
+            markers.append(found)
+        elif found is not None:
+            rejected.append(found)
     markers, twice = _merge_split_rings(markers)
     rejected += twice
     every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False) for c, d in blobs)
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wire_px: float, min_ring_px: float, max_ring_px: float,
+                 shape: tuple[int, int]) -> "DetectedMarker | RejectedRing | None":
+    """One piece of wire: the marker its ring identifies, why it identifies none, or None (too small to be a ring)."""
+    x, y, w, h, area = stats
+    rows, cols = shape
+    if max(w, h) < min_ring_px or area < 100:
+        return None
+    centre = pts.mean(axis=0)
+    if max(w, h) > max_ring_px:
+        return RejectedRing(reason=_OVERLAP, center_px=centre.astype(float))
+    if x <= 1 or y <= 1 or x + w >= cols - 1 or y + h >= rows - 1:
+        # A ring cut by the field's edge still gives an ellipse from its arc, and its BBs inside the field
+        # still count: reject only when too little of the wire is left to fit.
+        inner = pts[(pts[:, 0] > 2) & (pts[:, 1] > 2) & (pts[:, 0] < cols - 3) & (pts[:, 1] < rows - 3)]
+        if len(inner) < 0.4 * np.pi * min_ring_px * wire_px or _arc_span_deg(inner) < 180.0:
+            return RejectedRing(reason=_OUTSIDE, center_px=centre.astype(float))
+        pts = inner
+    ellipse = cv2.fitEllipse(pts)
+    (cx, cy), (d1, d2), angle = ellipse
+    major, minor = max(d1, d2) / 2.0, min(d1, d2) / 2.0
+    if minor < 0.25 * major:
+        return RejectedRing(reason=_EDGE_ON, center_px=np.array([cx, cy]))
+    inside = [b for b in blobs if _inside(b[0], ellipse, 0.9)]
+    if len(inside) < 3:
+        return RejectedRing(reason=f"only {len(inside)} BBs inside the ring", center_px=np.array([cx, cy]))
+    scale = major / ring_r  # px per mm at the marker
+    centers = np.array([b[0] for b in inside])
+    diam_px = np.array([b[1] for b in inside])
+    plane = _rectify(centers, ellipse) / scale
+    # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
+    ident, last_error = None, None
+    order = np.argsort(np.linalg.norm(plane, axis=1))
+    # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
+    # blob smaller than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under metal)
+    # makes every BB look large: only then each candidate, as the 2.0 mm central BB, calibrates them
+    # itself; identify's cost and margin still decide.
+    for own_scale in (False, True):
+        for c in order[:3]:
+            sizes_mm = diam_px * (2.0 / (diam_px[c] if own_scale else diam_px.min()))
+            if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
+                continue
+            try:
+                candidate = identify(plane - plane[c], sizes_mm, marker_set)
+            except MarkerNotIdentified as exc:
+                last_error = exc
+                continue
+            if ident is None or candidate.cost < ident.cost:
+                ident, diam_mm = candidate, sizes_mm
+        if ident is not None:
+            break
+    if ident is None:
+        reason = str(last_error) if last_error else "no central BB found inside the ring"
+        return RejectedRing(reason=reason, center_px=np.array([cx, cy]))
+    bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
+    return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost)
+
+
+def _wire_components(wire_image: NDArray[np.float32], *, high: float, low: float, min_extent_px: float):
+    """The wire's connected pieces, each as (piece, the pieces over ``high`` alone within it); a piece is
+    ((x, y, w, h, area), pixels (N, 2) float32 column, row).
+
+    Hysteresis keeps a thin, noisy wire whole: its pixels over ``low`` that connect to one over ``high``. It can
+    also join two rings, or a ring and anatomy, through their weak pixels; the pieces over ``high`` alone (what a
+    single threshold finds) are then tried instead (``_find_markers``). Pieces under ``min_extent_px`` across
+    (no ring) are left out.
+    """
+    close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    strong = cv2.morphologyEx((wire_image > high).astype(np.uint8), cv2.MORPH_CLOSE, close)
+    grown = cv2.morphologyEx(_hysteresis(wire_image, high=high, low=low), cv2.MORPH_CLOSE, close)
+    out = []
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(grown, connectivity=8)
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        if max(w, h) < min_extent_px:
+            continue
+        own = labels[y : y + h, x : x + w] == i
+        pts = np.column_stack(np.nonzero(own)[::-1]).astype(np.float32) + np.float32([x, y])
+        pieces = []
+        sub = strong[y : y + h, x : x + w] * own.astype(np.uint8)
+        if low < high and np.count_nonzero(sub) < area:
+            m, sub_labels, sub_stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8)
+            for j in range(1, m):
+                sx, sy, sw, sh, sarea = sub_stats[j]
+                pieces.append(((x + sx, y + sy, sw, sh, sarea), np.column_stack(np.nonzero(sub_labels == j)[::-1]).astype(np.float32) + np.float32([x, y])))
+        out.append((((x, y, w, h, area), pts), pieces))
+    return out
+
+
+def _hysteresis(image: NDArray[np.float32], *, high: float, low: float) -> NDArray[np.uint8]:
+    """Mask (uint8 0/1) of the pixels over ``low`` that are connected (8-neighbours) to a pixel over ``high``."""
+    weak = (image > low).astype(np.uint8)
+    if low >= high:
+        return weak
+    n, labels = cv2.connectedComponents(weak, connectivity=8)
+    keep = np.zeros(n, bool)
+    keep[np.unique(labels[image > high])] = True
+    keep[0] = False
+    return keep[labels].astype(np.uint8)
 
 
 def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMarker], list[RejectedRing]]:
