@@ -4,7 +4,7 @@ The background is the shared real radiograph (../shared/data/xray); the markers'
 model's DRR (``kcr.render_marker_drr``), not the twin's X-ray simulator; then scatter, Poisson quanta and a
 detector blur, as in ``tests/test_real_anatomy_background.py``. Each setting changes one thing from the default
 (6,000 quanta, 20 % scatter, 0.7 px blur, anatomy line integrals to 5.5, the twin's 0.304 mm pixels): the
-detector's pixel size (the view rebinned), its blur, the dose, the anatomy's density, scatter. Per setting: markers
+detector's pixel size (binned), its blur, the dose, the anatomy's density, scatter. Per setting: markers
 identified of those in the field, false identities, markers posed (``register_markers``, both views) and their
 position error. Scenes: seeds 21-23 (default), inlet + outlet and AP + lateral.
 
@@ -32,12 +32,11 @@ from drillnav.registration.kcr import render_marker_drr
 from drillnav.registration.marker_pose import register_markers
 
 RADIOGRAPH = Path(__file__).resolve().parents[2] / "shared" / "data" / "xray" / "chest-pa-RG1_UNCI.dcm"
-DEFAULT = {"pixel_scale": 1.0, "quanta": 6000.0, "scatter": 0.2, "blur_px": 0.7, "anatomy": 5.0}
+DEFAULT = {"binning": 1, "quanta": 6000.0, "scatter": 0.2, "blur_px": 0.7, "anatomy": 5.0}
 SETTINGS = {
     "default": {},
-    "pixels 0.61 mm (binned 2x)": {"pixel_scale": 0.5},
-    "pixels 0.43 mm": {"pixel_scale": 0.7},
-    "pixels 0.20 mm": {"pixel_scale": 1.5},
+    "binned 2x2 (0.61 mm pixels)": {"binning": 2},
+    "binned 3x3 (0.91 mm pixels)": {"binning": 3},
     "no detector blur": {"blur_px": 0.0},
     "blur 1.5 px": {"blur_px": 1.5},
     "blur 2.5 px": {"blur_px": 2.5},
@@ -48,12 +47,6 @@ SETTINGS = {
     "dense anatomy (to 9.5)": {"anatomy": 9.0},
     "100 % scatter, 1,000 quanta": {"scatter": 1.0, "quanta": 1000.0},
 }
-
-
-def rebinned(view: CArmView, scale: float) -> CArmView:
-    """The same geometry on a detector with ``scale`` times as many pixels per mm."""
-    return CArmView(projection_matrix=np.diag([scale, scale, 1.0]) @ view.projection_matrix, rows=int(round(view.rows * scale)),
-                    columns=int(round(view.columns * scale)), pixel_spacing_mm=(view.pixel_spacing_mm[0] / scale, view.pixel_spacing_mm[1] / scale))
 
 
 def shot(radiograph: np.ndarray, scene, view: CArmView, rng: np.random.Generator, *, quanta: float, scatter: float, blur_px: float, anatomy: float) -> np.ndarray:
@@ -77,7 +70,7 @@ def run_setting(radiograph: np.ndarray, setting: dict, seeds: range) -> dict:
         for pair in ("inlet,outlet", "ap,lateral"):
             scene = make_scene(seed=seed, views=pair, render=False)
             rng = np.random.default_rng(seed)
-            views = [rebinned(scene.views[n], p["pixel_scale"]) for n in scene.views]
+            views = [scene.views[n].binned(p["binning"]) for n in scene.views]
             dets = []
             for view in views:
                 image = shot(radiograph, scene, view, rng, quanta=p["quanta"], scatter=p["scatter"], blur_px=p["blur_px"], anatomy=p["anatomy"])

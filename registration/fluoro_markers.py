@@ -12,7 +12,7 @@ in the field; two rings that merge are reported, not guessed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -90,10 +90,21 @@ def detect_markers(
     pixel_spacing_mm: float = 0.304,
     magnification_range: tuple[float, float] = (1.2, 2.2),
 ) -> FluoroDetections:
-    """Find, measure and identify every marker in one view."""
+    """Find, measure and identify every marker in one view.
+
+    A detector coarser than :data:`WORKING_PIXEL_MM` (binned, or a small matrix over a large field) is looked at
+    on a grid that many times finer (bilinear), and every position and size is given back in its own pixels.
+    """
     img = np.asarray(image_log, dtype=np.float32)
     if img.ndim != 2:
         raise ValueError(f"expected a 2D image, got shape {img.shape}")
+    if not (np.isfinite(pixel_spacing_mm) and pixel_spacing_mm > 0):
+        raise ValueError(f"pixel_spacing_mm must be a positive number, got {pixel_spacing_mm}")
+    factor = int(round(pixel_spacing_mm / WORKING_PIXEL_MM))
+    if factor >= 2:
+        fine = cv2.resize(img, (img.shape[1] * factor, img.shape[0] * factor), interpolation=cv2.INTER_LINEAR)
+        found = detect_markers(fine, marker_set, pixel_spacing_mm=pixel_spacing_mm / factor, magnification_range=magnification_range)
+        return _coarsened(found, factor)
     ring_r = marker_set.markers[0].ring_radius_mm
     big_bb_px = 3.5 * magnification_range[1] / pixel_spacing_mm
     k = int(2 * big_bb_px + 7) | 1
@@ -116,6 +127,24 @@ def detect_markers(
         if (level == 0 and len(result.markers) > 1) or (result.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected)):
             break
     return result
+
+
+def _coarsened(found: FluoroDetections, factor: int) -> FluoroDetections:
+    """Detections on a grid ``factor`` times finer (cv2.resize's pixel centres) given back in the image's own pixels."""
+
+    def px(p):
+        return (np.asarray(p, dtype=np.float64) + 0.5) / factor - 0.5
+
+    def bb(b: DetectedBB) -> DetectedBB:
+        return replace(b, center_px=px(b.center_px), diameter_px=b.diameter_px / factor)
+
+    def marker(m: DetectedMarker) -> DetectedMarker:
+        (cx, cy), (d1, d2), angle = m.ring_ellipse
+        ellipse = (tuple(float(v) for v in px([cx, cy])), (d1 / factor, d2 / factor), angle)
+        return replace(m, bbs=tuple(bb(b) for b in m.bbs), ring_ellipse=ellipse)
+
+    return FluoroDetections(markers=tuple(marker(m) for m in found.markers), rejected=tuple(replace(r, center_px=px(r.center_px)) for r in found.rejected),
+                            blobs=tuple(bb(b) for b in found.blobs))
 
 
 def _fits_its_plane(marker: DetectedMarker, marker_set: MarkerSet, *, min_bbs: int = 5, max_rms_px: float = 3.0) -> bool:
@@ -178,6 +207,10 @@ def _add_new_markers(found: FluoroDetections, lower: FluoroDetections, marker_se
 # what they have: in a cluttered view a lower floor can let a neighbour's or the hardware's blobs into a ring (a
 # wrongly assigned pattern was seen on the twin's operating room).
 CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
+# The detector's kernels are whole pixels sized for 0.3 mm pixels (the BB/wire opening, the smoothing): on a detector
+# binned to 0.6 mm the opening could no longer tell a 0.8 mm wire from a 2 mm BB. Such an image is looked at on a grid
+# round(spacing / WORKING_PIXEL_MM) times finer (benchmarks/detector_sweep.py, 0.61 mm pixels: 27 -> 55 of 60 markers).
+WORKING_PIXEL_MM = 0.304
 # The wire is traced by hysteresis: pixels over WIRE_HYSTERESIS x its threshold (and over 2.5 sigma of noise) that
 # connect to one over the threshold. A 0.8 mm wire is a thin ridge as noisy as the pixels under it; with no detector
 # blur, or dense anatomy behind it, a single threshold broke each ring into arcs that fit flat ellipses ("edge-on")

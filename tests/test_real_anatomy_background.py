@@ -41,8 +41,8 @@ def radiograph() -> np.ndarray:
     return raw / raw.max()  # MONOCHROME1: bright where the body attenuates
 
 
-def _shot(radiograph, scene, name: str, rng, *, quanta: float, scatter: float, blur_px: float = 0.7, anatomy: float = 5.0) -> np.ndarray:
-    view = scene.views[name]
+def _shot(radiograph, scene, name: str, rng, *, quanta: float, scatter: float, blur_px: float = 0.7, anatomy: float = 5.0, view=None) -> np.ndarray:
+    view = view or scene.views[name]
     r0, c0 = rng.integers(0, radiograph.shape[0] - 900), rng.integers(0, radiograph.shape[1] - 900)
     # The radiograph's contrast as line integrals of 0.5-5.5 (a pelvis's range at these energies).
     line = cv2.resize(radiograph[r0 : r0 + 900, c0 : c0 + 900], (view.columns, view.rows)) * anatomy + 0.5
@@ -50,32 +50,35 @@ def _shot(radiograph, scene, name: str, rng, *, quanta: float, scatter: float, b
         line += render_marker_drr(scene.manufactured[marker_id], pose, view, (0, 0, view.columns, view.rows))
     primary = quanta * np.exp(-line)
     # Scatter: a broad blur of the primary, ``scatter`` times its local level.
-    counts = rng.poisson(primary + scatter * cv2.GaussianBlur(primary, (0, 0), 40.0)).astype(np.float32)
+    counts = rng.poisson(primary + scatter * cv2.GaussianBlur(primary, (0, 0), 40.0 * view.columns / 976)).astype(np.float32)
     if blur_px > 0:  # the detector's own blur (a simulator may have none)
         counts = cv2.GaussianBlur(counts, (0, 0), blur_px)
     return (-np.log(np.maximum(counts, 1.0) / quanta)).astype(np.float32)
 
 
-@pytest.mark.parametrize(("seed", "scatter", "blur_px", "anatomy"), [
-    (11, 0.1, 0.7, 5.0), (13, 0.5, 0.7, 5.0), (17, 1.0, 0.7, 5.0),
+@pytest.mark.parametrize(("seed", "scatter", "blur_px", "anatomy", "binning"), [
+    (11, 0.1, 0.7, 5.0, 1), (13, 0.5, 0.7, 5.0, 1), (17, 1.0, 0.7, 5.0, 1),
     # No detector blur: the wire's thin peak is as noisy as the pixels, and a threshold alone broke each ring into arcs.
-    (29, 0.2, 0.0, 5.0),
+    (29, 0.2, 0.0, 5.0, 1),
     # Denser anatomy (line integrals to 9.5): more texture, more noise behind the wire; arcs again.
-    (31, 0.2, 0.7, 9.0),
+    (31, 0.2, 0.7, 9.0, 1),
+    # A detector binned 2x2 (0.61 mm pixels): the whole-pixel opening could not tell the wire from a 2 mm BB.
+    (23, 0.2, 0.7, 5.0, 2),
 ])
-def test_markers_on_real_anatomy_are_identified_posed_and_register_the_drill(radiograph, seed, scatter, blur_px, anatomy):
+def test_markers_on_real_anatomy_are_identified_posed_and_register_the_drill(radiograph, seed, scatter, blur_px, anatomy, binning):
     scene = make_scene(seed=seed, views="inlet,outlet", render=False)
     rng = np.random.default_rng(seed)
     names = list(scene.views)
-    dets = [detect_markers(_shot(radiograph, scene, n, rng, quanta=6000.0, scatter=scatter, blur_px=blur_px, anatomy=anatomy), scene.marker_set,
-                           pixel_spacing_mm=scene.views[n].pixel_spacing_mm[1])
-            for n in names]
+    views = [scene.views[n].binned(binning) for n in names]
+    dets = [detect_markers(_shot(radiograph, scene, n, rng, quanta=6000.0, scatter=scatter, blur_px=blur_px, anatomy=anatomy, view=v), scene.marker_set,
+                           pixel_spacing_mm=v.pixel_spacing_mm[1])
+            for n, v in zip(names, views)]
     truth = set(scene.carm_from_marker)
     for name, det in zip(names, dets):
         found = {m.marker_id for m in det.markers}
         assert found <= truth, f"{name}: identified {sorted(found - truth)}, which are not in the field"
         assert len(found) >= 4, f"{name}: identified {sorted(found)} of {sorted(truth)}; rejected: {[r.reason for r in det.rejected]}"
-    poses = register_markers(dets, [scene.views[n] for n in names], scene.marker_set)
+    poses = register_markers(dets, views, scene.marker_set)
     posed = [p for p in poses if p.converged]
     assert len(posed) >= 4
     for p in posed:
