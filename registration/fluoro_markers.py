@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .carm import CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
 
-__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_markers"]
+__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_markers", "magnification_range"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -83,18 +84,32 @@ def _blobs(bb_image: NDArray[np.float32], threshold: float) -> list[tuple[NDArra
     return out
 
 
+def magnification_range(view: CArmView) -> tuple[float, float]:
+    """The magnifications (low, high) markers on the patient can have in ``view``: ``MAGNIFICATION_SPAN`` times
+    the magnification at the isocentre (frame C's origin), never under 1; ``DEFAULT_MAGNIFICATION_RANGE`` when the
+    origin does not lie between the source and the detector."""
+    m = float(view.magnification(np.zeros((1, 3)))[0])
+    if not 1.0 < m < 10.0:
+        return DEFAULT_MAGNIFICATION_RANGE
+    return max(1.0, MAGNIFICATION_SPAN[0] * m), max(1.0, MAGNIFICATION_SPAN[1] * m)
+
+
 def detect_markers(
     image_log: NDArray[np.float32],
     marker_set: MarkerSet,
     *,
     pixel_spacing_mm: float = 0.304,
-    magnification_range: tuple[float, float] = (1.2, 2.2),
+    magnification_range: tuple[float, float] | None = None,
 ) -> FluoroDetections:
     """Find, measure and identify every marker in one view.
 
     A detector coarser than :data:`WORKING_PIXEL_MM` (binned, or a small matrix over a large field) is looked at
     on a grid that many times finer (bilinear), and every position and size is given back in its own pixels.
+    ``magnification_range``: the markers' magnifications, which size the kernels and the rings looked for
+    (:func:`magnification_range` of the view; None: ``DEFAULT_MAGNIFICATION_RANGE``).
     """
+    if magnification_range is None:
+        magnification_range = DEFAULT_MAGNIFICATION_RANGE
     img = np.asarray(image_log, dtype=np.float32)
     if img.ndim != 2:
         raise ValueError(f"expected a 2D image, got shape {img.shape}")
@@ -207,6 +222,12 @@ def _add_new_markers(found: FluoroDetections, lower: FluoroDetections, marker_se
 # what they have: in a cluttered view a lower floor can let a neighbour's or the hardware's blobs into a ring (a
 # wrongly assigned pattern was seen on the twin's operating room).
 CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
+# The markers' magnification sizes the detector's kernels and the rings it looks for. A fixed 1.2-2.2 held the
+# twin's C-arm (SDD 1164 mm, SAD 624 mm: 1.87 at the isocentre, markers at 1.74-2.03) but not one whose isocentre
+# magnifies 2.5 (SDD 1200, SAD 480: markers at 2.28-2.79, 25 of 60 identified in benchmarks/detector_sweep.py's
+# scenes): the range now follows the view, 0.65-1.18 times the isocentre's magnification (1.21-2.20 on the twin).
+DEFAULT_MAGNIFICATION_RANGE = (1.2, 2.2)
+MAGNIFICATION_SPAN = (0.65, 1.18)
 # The detector's kernels are whole pixels sized for 0.3 mm pixels (the BB/wire opening, the smoothing): on a detector
 # binned to 0.6 mm the opening could no longer tell a 0.8 mm wire from a 2 mm BB. Such an image is looked at on a grid
 # round(spacing / WORKING_PIXEL_MM) times finer (benchmarks/detector_sweep.py, 0.61 mm pixels: 27 -> 55 of 60 markers).

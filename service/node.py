@@ -40,7 +40,7 @@ import zenoh
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import FluoroDetections, detect_markers
+from drillnav.registration.fluoro_markers import FluoroDetections, detect_markers, magnification_range
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import MarkerPose, register_markers
 from drillnav.registration.markers import MarkerSet
@@ -326,7 +326,7 @@ class RegistrationNode:
         detected = 0
         for name, shot in newest.items():
             try:
-                det = detect_markers(shot.image_log, self.marker_set, pixel_spacing_mm=shot.carm_view.pixel_spacing_mm[1])
+                det = detect_markers(shot.image_log, self.marker_set, pixel_spacing_mm=shot.carm_view.pixel_spacing_mm[1], magnification_range=magnification_range(shot.carm_view))
             except (DrillnavError, ValueError) as exc:
                 self.counters.shots_failed += 1
                 self._event("error", f"shot '{name}' refused: {exc}")

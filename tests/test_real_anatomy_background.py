@@ -23,8 +23,9 @@ import numpy as np
 import pydicom
 import pytest
 
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.drivers.sim.scene import NAMED_VIEWS, TRUE_DRILL_AXIS_CAMERA, make_scene
+from drillnav.registration.carm import CArmView
+from drillnav.registration.fluoro_markers import DEFAULT_MAGNIFICATION_RANGE, detect_markers, magnification_range
 from drillnav.registration.kcr import render_marker_drr
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.video_fluoro import register_video_to_fluoro
@@ -56,22 +57,51 @@ def _shot(radiograph, scene, name: str, rng, *, quanta: float, scatter: float, b
     return (-np.log(np.maximum(counts, 1.0) / quanta)).astype(np.float32)
 
 
-@pytest.mark.parametrize(("seed", "scatter", "blur_px", "anatomy", "binning"), [
-    (11, 0.1, 0.7, 5.0, 1), (13, 0.5, 0.7, 5.0, 1), (17, 1.0, 0.7, 5.0, 1),
+def _views(scene, geometry):
+    """The scene's views, or the same positioner angles on a C-arm of ``geometry`` = (SDD, SAD) mm."""
+    if geometry is None:
+        return {n: v for n, v in scene.views.items()}
+    sdd, sad = geometry
+    return {n: CArmView.from_positioner(primary_deg=NAMED_VIEWS[n][0], secondary_deg=NAMED_VIEWS[n][1], source_to_detector_mm=sdd,
+                                        source_to_isocenter_mm=sad, pixel_spacing_mm=(0.3, 0.3), rows=1000, columns=1000) for n in scene.views}
+
+
+def test_the_magnification_range_follows_the_c_arm():
+    scene = make_scene(seed=1, views="inlet,outlet", render=False)
+    low, high = magnification_range(scene.views["inlet"])  # the twin's C-arm: 1.87 at the isocentre
+    assert abs(low - 1.2) < 0.02 and abs(high - 2.2) < 0.01
+    low, high = magnification_range(_views(scene, (1200.0, 480.0))["inlet"])  # 2.5 at the isocentre
+    assert abs(low - 1.625) < 0.01 and abs(high - 2.95) < 0.01
+    # A projection whose frame has its origin behind the source says nothing of the isocentre: the default range.
+    behind = CArmView(projection_matrix=scene.views["inlet"].projection_matrix @ _shift(scene.views["inlet"].source_position_mm * 2.0),
+                      rows=976, columns=976, pixel_spacing_mm=(0.304, 0.304))
+    assert magnification_range(behind) == DEFAULT_MAGNIFICATION_RANGE
+
+
+def _shift(t) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
+@pytest.mark.parametrize(("seed", "scatter", "blur_px", "anatomy", "binning", "geometry"), [
+    (11, 0.1, 0.7, 5.0, 1, None), (13, 0.5, 0.7, 5.0, 1, None), (17, 1.0, 0.7, 5.0, 1, None),
     # No detector blur: the wire's thin peak is as noisy as the pixels, and a threshold alone broke each ring into arcs.
-    (29, 0.2, 0.0, 5.0, 1),
+    (29, 0.2, 0.0, 5.0, 1, None),
     # Denser anatomy (line integrals to 9.5): more texture, more noise behind the wire; arcs again.
-    (31, 0.2, 0.7, 9.0, 1),
+    (31, 0.2, 0.7, 9.0, 1, None),
     # A detector binned 2x2 (0.61 mm pixels): the whole-pixel opening could not tell the wire from a 2 mm BB.
-    (23, 0.2, 0.7, 5.0, 2),
+    (23, 0.2, 0.7, 5.0, 2, None),
+    # A C-arm that magnifies 2.5 at the isocentre (SDD 1200 mm, SAD 480 mm): markers at 2.3-2.8, over a fixed 1.2-2.2.
+    (22, 0.2, 0.7, 5.0, 1, (1200.0, 480.0)),
 ])
-def test_markers_on_real_anatomy_are_identified_posed_and_register_the_drill(radiograph, seed, scatter, blur_px, anatomy, binning):
+def test_markers_on_real_anatomy_are_identified_posed_and_register_the_drill(radiograph, seed, scatter, blur_px, anatomy, binning, geometry):
     scene = make_scene(seed=seed, views="inlet,outlet", render=False)
     rng = np.random.default_rng(seed)
     names = list(scene.views)
-    views = [scene.views[n].binned(binning) for n in names]
+    views = [v.binned(binning) for v in _views(scene, geometry).values()]
     dets = [detect_markers(_shot(radiograph, scene, n, rng, quanta=6000.0, scatter=scatter, blur_px=blur_px, anatomy=anatomy, view=v), scene.marker_set,
-                           pixel_spacing_mm=v.pixel_spacing_mm[1])
+                           pixel_spacing_mm=v.pixel_spacing_mm[1], magnification_range=magnification_range(v))
             for n, v in zip(names, views)]
     truth = set(scene.carm_from_marker)
     for name, det in zip(names, dets):
