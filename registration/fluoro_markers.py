@@ -229,8 +229,10 @@ CONTRAST_FLOORS = ((0.8, 0.5), (0.4, 0.25), (0.2, 0.12))
 DEFAULT_MAGNIFICATION_RANGE = (1.2, 2.2)
 MAGNIFICATION_SPAN = (0.65, 1.18)
 # The detector's kernels are whole pixels sized for 0.3 mm pixels (the BB/wire opening, the smoothing): on a detector
-# binned to 0.6 mm the opening could no longer tell a 0.8 mm wire from a 2 mm BB. Such an image is looked at on a grid
-# round(spacing / WORKING_PIXEL_MM) times finer (benchmarks/detector_sweep.py, 0.61 mm pixels: 27 -> 55 of 60 markers).
+# binned to 0.6 mm the opening is 3 px, about a BB's width. Such an image is looked at on a grid
+# round(spacing / WORKING_PIXEL_MM) times finer. benchmarks/detector_sweep.py, binned 2x2: 28 -> 55 of 60 markers,
+# with the known-component DRR's wire (a whole number of pixels wide, faint at 0.61 mm); the twin's own shots binned
+# 2x2 lost little before (74 -> 76 of 90, docs/identity_and_error.md).
 WORKING_PIXEL_MM = 0.304
 # The wire is traced by hysteresis: pixels over WIRE_HYSTERESIS x its threshold (and over 2.5 sigma of noise) that
 # connect to one over the threshold. A 0.8 mm wire is a thin ridge as noisy as the pixels under it; with no detector
