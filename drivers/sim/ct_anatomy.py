@@ -61,7 +61,7 @@ class VoxelAnatomy:
         """Attenuation line integrals (rows, columns) through the full-resolution CT, fine ray step (:func:`render_line_integrals`).
 
         The last few are kept: a study shoots the same patient and view under
-        several degradations, and one DRR of the CT takes tens of seconds.
+        several degradations, and one DRR of the CT takes a second or more.
         """
         key = (view.projection_matrix.tobytes(), view.rows, view.columns, np.asarray(carm_from_ct, dtype=np.float64).tobytes())
         cache = self._drr_cache
@@ -121,8 +121,9 @@ def render_line_integrals(truth_mu: DrrVolume, view: CArmView, carm_from_ct: NDA
     bilinear in between.
 
     With the real chest CT (0.7 mm voxels) a ray every 2nd pixel differs from a ray through every pixel by 0.001
-    RMS (p99 0.003) in log units, against 0.04-0.05 of photon noise at the twin's full dose, and takes a fifth
-    of the time; ``tests/test_scene.py::test_voxel_anatomy_scene`` bounds it.
+    RMS (p99 0.003) in log units, against 0.04-0.05 of photon noise at the twin's full dose, and takes about a
+    quarter of the time (``benchmarks/sim_scene.py``: 1.5 s against 5.7 s a view on 2 cores);
+    ``tests/test_scene.py::test_voxel_anatomy_scene`` bounds the difference.
     """
     stride = render_stride(truth_mu, view, carm_from_ct)
     coarse = render_drr(truth_mu, view, carm_from_ct, stride=stride, step_mm=RENDER_STEP_MM)
