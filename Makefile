@@ -16,8 +16,12 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/drillnav serve --twin
 
+# Pure computation on every core (at most 4 workers, a module per worker), then the rest in one process: servers,
+# daemons, browsers and every wall-clock bound they state (tests/conftest.py COMPUTE_MODULES). Both run; either failing fails.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m compute -n auto --maxprocesses 4 --dist loadfile; a=$$?; \
+	$(BIN)/python -m pytest -q -m "not compute"; b=$$?; \
+	[ $$a -eq 0 ] && [ $$b -eq 0 ]
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do $(BIN)/python $$b || exit 1; done

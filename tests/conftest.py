@@ -5,6 +5,8 @@ import socket
 import sys
 from pathlib import Path
 
+import pytest
+
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `drillnav` sets it (service/cli.py): small matrices, threads only spin
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -32,3 +34,22 @@ def wait_for(cond, timeout_s: float) -> bool:
             return True
         time.sleep(0.02)
     return bool(cond())
+
+
+# Modules of pure computation: no server, process, thread, session or browser, and no clock read. `make test` runs
+# them on several workers (`pytest -m compute -n ...`), then the rest in one process, where every wall-clock bound a
+# test states holds on a 2-core machine. tests/test_suite_split.py checks each module listed here against that.
+COMPUTE_MODULES = frozenset({
+    "test_calibration.py", "test_camera_yaml.py", "test_cli_anatomy.py", "test_cli_ct.py", "test_cli_markers.py",
+    "test_cli_register.py", "test_continuity.py", "test_ct_intake.py", "test_ct_registration.py", "test_display_overlays.py",
+    "test_few_markers.py", "test_fluoro_compressed.py", "test_fluoro_hard.py", "test_fluoro_pipeline.py", "test_intensifier.py",
+    "test_joint_solve.py", "test_kcr.py", "test_marker_pose_views.py", "test_marker_set_video.py", "test_markers.py",
+    "test_pki.py", "test_predicted_error.py", "test_real_anatomy_background.py", "test_scene.py", "test_soak_analysis.py",
+    "test_tag_detection.py", "test_tag_recovery.py", "test_twin_aim.py", "test_twin_degradations.py", "test_video_claims.py",
+})
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in COMPUTE_MODULES:
+            item.add_marker(pytest.mark.compute)
