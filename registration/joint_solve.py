@@ -28,7 +28,7 @@ the covariance readable.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,7 +40,7 @@ from .camera import PinholeCamera
 from .carm import intensifier_shift_px
 from .errors import MarkersNotFound
 from .markers import MarkerSet
-from .transforms import apply, invert, make_transform
+from .transforms import apply, make_transform
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
            "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
@@ -108,6 +108,10 @@ class JointSolution:
     chi2: float = float("nan")  # sum of the squared normalised residuals
     # ((view, (2,) pincushion and S shift at the field's corner, px), ...) of each intensifier view estimated.
     detector_distortion_px: tuple = ()
+    # {marker id: (4, 2) px} where the solution projects each tag corner, those left out too.
+    corner_projections_px: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    # {marker id: (k,) indices} of the tag corners left out as outliers (see :func:`joint_solve`).
+    dropped_corners: dict[int, tuple[int, ...]] = field(default_factory=dict)
 
 
 def perturb_about(delta: NDArray[np.float64], target_from_source: NDArray[np.float64], pivot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -156,7 +160,10 @@ def joint_solve(
     carm_from_marker0, carm_from_drill0 : the starting poses (each marker's on the right mirror side).
     Markers in both ``observations`` and ``corners_px`` are used; a marker whose RMS normalised residual
     exceeds ``outlier_chi`` (and three times the others' median) is rejected while ``min_markers`` remain;
-    before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped.
+    before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped, and a tag
+    whose corners fit over ``outlier_chi`` sigmas RMS and 3 times the other tags' median, or whose marker stands
+    out, is tried without each of its corners in turn: the one corner whose absence makes the tag fit is left
+    out (``dropped_corners``) and the marker kept on the other three.
     ``corner_common_per_sigma``, ``corner_scale_per_sigma`` (in units of the corners' independent noise) and
     ``bb_common_sigma_px``, ``bb_scale_sigma_px``: the shift (per axis) and scale shared by a tag's four corners /
     by one marker's BBs in one view (see :data:`CORNER_COMMON_PER_SIGMA`); each group is whitened with them, so
@@ -179,19 +186,37 @@ def joint_solve(
                          f"BB shift {bb_common_sigma_px}, BB scale {bb_scale_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
+    corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
-    clean = max(sol.marker_chi.values()) <= outlier_chi and all(
+    corner_min_px = outlier_chi * corner_sigma_px
+    clean = max(sol.marker_chi.values()) <= outlier_chi and not _corner_suspects(sol, corners_px, ids, corner_min_px) and all(
         len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px)[k][1]) == len(o[1])
         for i in ids for k, o in enumerate(observations[i]))
     if clean:
         return sol
     trimmed = False
+    dropped: dict[int, tuple[int, ...]] = {}
     while True:
         # Judged on a robust fit (soft L1 beyond 3 sigma), so that one bad marker cannot drag the others
         # into disagreeing with their own data and hide among them.
         sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="soft_l1")
         drill0, markers0 = sol.carm_from_drill, {i: sol.carm_from_marker[i] for i in ids}
         chi = sol.marker_chi
+        # A corner a glove or a glare spot displaced spoils its whole tag (6-8 px of one corner move the axis by
+        # over 1 mm at the entry while the marker's RMS, diluted by its BBs, still looks ordinary): before the
+        # marker itself is judged, a tag whose corners stand out, or a marker that would be rejected, is tried on
+        # three corners (once per marker). Nothing stands out where every marker fits badly (a mirror start).
+        standing_out = [i for i in ids if chi[i] > outlier_chi and chi[i] > 3.0 * float(np.median([chi[j] for j in ids if j != i] or [0.0]))]
+        suspects = [i for i in _corner_suspects(sol, corners_px, ids, corner_min_px) + sorted(standing_out, key=lambda i: -chi[i]) if i not in dropped]
+        if suspects:
+            i = suspects[0]
+            dropped[i] = ()
+            found = _corner_outlier(ids, observations, corners_px, drill0, markers0, args, i, min_px=corner_min_px)
+            if found is not None:
+                corners_px = {**corners_px, i: corners_px[i].copy()}
+                corners_px[i][found] = np.nan
+                dropped[i] = (found,)
+            continue
         worst = max(ids, key=lambda i: chi[i])
         others = [chi[i] for i in ids if i != worst]
         if len(ids) > min_markers and chi[worst] > outlier_chi and chi[worst] > 3.0 * float(np.median(others)):
@@ -209,7 +234,55 @@ def joint_solve(
         break
     # The final fit is plain least squares: its Jacobian gives the covariance.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
-    return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected)})
+    return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected), "dropped_corners": {i: k for i, k in dropped.items() if i in ids and k}})
+
+
+def _corner_errors_px(sol: JointSolution, corners_px) -> dict[int, NDArray[np.float64]]:
+    """{marker id: (4,) px} each tag corner's distance from its projection, NaN for a corner left out."""
+    return {i: np.linalg.norm(p - corners_px[i], axis=1) for i, p in sol.corner_projections_px.items()}
+
+
+def _corner_suspects(sol: JointSolution, corners_px, ids, min_px: float) -> list[int]:
+    """Markers whose tag corners fit worse than ``min_px`` RMS and 3 times the other tags' median, worst first."""
+    rms = {i: float(np.sqrt(np.nanmean(e**2))) for i, e in _corner_errors_px(sol, corners_px).items()}
+    out = [i for i in ids if rms[i] > min_px and rms[i] > 3.0 * float(np.median([rms[j] for j in ids if j != i] or [0.0]))]
+    return sorted(out, key=lambda i: -rms[i])
+
+
+def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marker_id: int, *, min_px: float) -> int | None:
+    """The index of the one corner of ``marker_id``'s tag that, left out, makes the tag fit; None if none does.
+
+    Each of the four is left out in turn (robust fit). The floor is ``min_px`` or 3 times the other tags' median
+    corner error, whichever is larger (blur and compression scatter every corner). A corner is named when,
+    without it, each remaining corner of the tag is within the floor, it is itself over 3 floors from where the
+    solution projects it, and the chi-square is under half of that without any other corner. A corner displaced
+    by a glove or a glare spot, then; not one of a blurred tag's corners, nor a tag that is off as a whole (the
+    marker's own test).
+    """
+    chi2: dict[int, float] = {}
+    fits: set[int] = set()
+    for k in range(4):
+        if not np.isfinite(corners_px[marker_id][k]).all():
+            continue
+        trial = {**corners_px, marker_id: corners_px[marker_id].copy()}
+        trial[marker_id][k] = np.nan
+        try:
+            sol = _solve(ids, observations, trial, drill0, markers0, *args, loss="soft_l1")
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        chi2[k] = sol.chi2
+        errors = _corner_errors_px(sol, trial)
+        others = [e for i, e in errors.items() if i != marker_id]
+        floor = max(min_px, 3.0 * float(np.nanmedian(np.concatenate(others)))) if others else min_px
+        left_out = float(np.linalg.norm(sol.corner_projections_px[marker_id][k] - corners_px[marker_id][k]))
+        if np.nanmax(errors[marker_id]) <= floor and left_out > 3.0 * floor:
+            fits.add(k)
+    if len(chi2) < 2:
+        return None
+    best, second = sorted(chi2, key=chi2.get)[:2]
+    # One corner, not any: without it the fit is far better than without any other corner. A tag off as a whole
+    # (its marker's BBs shifted in a single view, where depth is loose) fits about as well without any one.
+    return best if best in fits and chi2[best] < 0.5 * chi2[second] else None
 
 
 def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[NDArray[np.int64], ...], *, min_scale: float = 0.5,
@@ -331,18 +404,23 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     dist_sigma = np.repeat([v.distortion_sigma_px for v in dist_views], 2).astype(np.float64)
     f_has = f_dv >= 0
     wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, bb_scale_px)
-    c_obj = np.concatenate([marker_set.by_id(i).tag_corners_mm() for i in ids])
-    c_img = np.concatenate([np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids])
-    c_mk = np.repeat(np.arange(m), 4)
-    wc, c_noise, _ = _group_whitening([c_img[4 * k : 4 * k + 4] for k in range(m)], corner_sigma_px, corner_common_px, corner_scale_px)
+    # A corner left out as an outlier is NaN in ``corners_px``: its tag is whitened over the corners it keeps.
+    c_keep = [np.all(np.isfinite(np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)), axis=1) for i in ids]
+    c_sel = np.nonzero(np.concatenate(c_keep))[0]  # of every tag's four corners, those used
+    c_obj_all = np.concatenate([marker_set.by_id(i).tag_corners_mm() for i in ids])
+    c_mk_all = np.repeat(np.arange(m), 4)
+    c_groups = [np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)[keep] for i, keep in zip(ids, c_keep)]
+    c_obj, c_img, c_mk = c_obj_all[c_sel], np.concatenate(c_groups), c_mk_all[c_sel]
+    wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
     n_par = 6 + 6 * m + N_INTRINSICS + 2 * n_dv
     i_dist = 6 + 6 * m + N_INTRINSICS
 
-    def residuals(xs):
-        """Normalised residuals (P, R) of P parameter vectors (P, n_par) at once."""
+    def residuals(xs, every_corner: bool = False):
+        """Normalised residuals (P, R) of P parameter vectors (P, n_par) at once; ``every_corner``: the
+        projections (P, 4 m, 2) of every tag corner instead, those left out too."""
         n = xs.shape[0]
         rd = Rotation.from_rotvec(xs[:, :3]).as_matrix()  # (P, 3, 3)
         rot_d = rd @ drill0[:3, :3]
@@ -358,7 +436,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             coef = xs[:, i_dist:].reshape(n, n_dv, 2)[:, f_dv[f_has]]
             uv[:, f_has] += intensifier_shift_px(uv[:, f_has], f_center[f_has], f_corner_r[f_has][:, None], coef)
         rf = np.einsum("ij,pj->pi", wf, (uv - f_img_a).reshape(n, -1)) / f_noise
-        cc = np.einsum("pnij,nj->pni", rot_m[:, c_mk], c_obj) + t_m[:, c_mk]
+        obj, mk = (c_obj_all, c_mk_all) if every_corner else (c_obj, c_mk)
+        cc = np.einsum("pnij,nj->pni", rot_m[:, mk], obj) + t_m[:, mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
         xy0 = cd[..., :2] / cd[..., 2:3]
         intr = xs[:, 6 + 6 * m : i_dist]
@@ -366,6 +445,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
         v = fy0 * s * xy[..., 1] + cy0 + intr[:, 2:3]
+        if every_corner:
+            return np.stack([u, v], axis=-1)
         rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
         prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
         return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
@@ -405,6 +486,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     drill, rot, t, _ = unpack(sol.x)
     distortion = tuple((view, sol.x[i_dist + 2 * j : i_dist + 2 * j + 2].copy()) for j, view in enumerate(dist_views))
     res = sol.fun
+    projected = residuals(sol.x[None], every_corner=True)[0]  # (4 m, 2)
+    corner_proj = {i: projected[4 * k : 4 * k + 4] for k, i in enumerate(ids)}
     rf, rc = res[:n_f].reshape(-1, 2), res[n_f : n_f + n_c].reshape(-1, 2)
     chi = {}
     for k, i in enumerate(ids):
@@ -445,4 +528,5 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         chi2=float(np.sum(res**2)),
         converged=bool(sol.success),
         detector_distortion_px=distortion,
+        corner_projections_px=corner_proj,
     )
