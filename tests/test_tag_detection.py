@@ -36,3 +36,34 @@ def test_corners_stay_put_under_motion_blur():
 
 def test_no_ids_on_a_tag_free_frame_with_every_camera_degradation():
     assert false_ids_without_tags(seeds=1, first_seed=3000) == 0
+
+
+def test_a_blur_wider_than_the_edge_window_still_places_the_corners():
+    """11.5-12 px of motion blur, the top of the twin's range: the first +-4 px window across an edge sees a flat
+    gradient and would return the detector's corners, which the blur pulls inwards; the wider second pass places
+    the edge. Corner error against the twin's true projection, median / 75th percentile: 0.19 / 0.67 px measured,
+    1.25 / 1.83 px with the first window alone (6 of 30 tags whose edges are not straight enough keep the
+    detector's corners either way, 2.4 px median)."""
+    import numpy as np
+
+    from drillnav.drivers.sim.degradations import Degradations
+    from drillnav.drivers.sim.scene import make_scene
+    from drillnav.registration.transforms import apply
+    from drillnav.registration.video_markers import VideoMarkerLocator
+
+    errors = []
+    for seed in (3000, 3001):
+        scene = make_scene(seed=seed, render=False, degradations=Degradations(motion_blur=True, motion_blur_px=(11.5, 12.0)))
+        locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+        pose_rng, camera_rng = np.random.default_rng([seed, 2]), np.random.default_rng([seed, 3])
+        for _ in range(3):
+            pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
+            video = locator.locate(scene.render_camera(camera_rng, carm_from_drill=pose))
+            camera_from_marker = scene.camera_from_marker(pose)
+            for m in video.markers:
+                truth = scene.true_camera.project(apply(camera_from_marker[m.marker_id], scene.marker_set.by_id(m.marker_id).tag_corners_mm()))
+                errors.extend(np.linalg.norm(m.corners_px - truth, axis=1))
+    errors = np.asarray(errors)
+    assert len(errors) >= 80
+    median, p75 = float(np.median(errors)), float(np.percentile(errors, 75))
+    assert median < 0.4 and p75 < 1.0, (median, p75)
