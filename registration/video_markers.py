@@ -101,8 +101,9 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
     inwards (1.3 px RMS under motion blur), while a straight edge blurred by a symmetric kernel keeps its
     place. Each edge is sampled over its middle 60 % (away from the rounded corners and a glove over
     one), its position along the normal taken as the centroid of the gradient's upper half, and a line
-    fitted (total least squares). Twice: first +-``half_px`` about the detector's corners, then twice as far about
-    the lines found, with the samples off their line left out (see ``lines``). None when an edge does not look
+    fitted (total least squares): +-``half_px`` about the detector's corners, then, for a tag whose step is wider
+    than 3 px (motion blur) or whose first fit failed, twice as far about the lines found, with the samples off
+    their line left out. None when an edge does not look
     straight in either pass (a sample off the frame, blood on it): the caller keeps the sub-pixel corners. Every
     tag's edges are sampled in one remap and fitted in one batch (a per-tag loop cost ~0.9 ms a tag on the frame
     path, most of it numpy's per-call overhead).
@@ -113,14 +114,19 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
         return []
     along = np.linspace(0.2, 0.8, samples)
 
-    def lines(around: NDArray[np.float64], reach_px: float, falling_inwards: bool, trim: bool = False) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    def lines(around: NDArray[np.float64], reach_px: float, falling_inwards: bool, trim: bool = False
+              ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+        """Corners (m, 4, 2), whether found (m,), and each tag's median step width (m,): px where the gradient is
+        over half its peak (about 2 px for a sharp edge, the blur's extent for a wide one)."""
         offsets = np.arange(-reach_px, reach_px + step_px / 2, step_px)
         prof = edge_profiles(gray, around, along=along, offsets_px=offsets)
+        grad = np.abs(np.diff(prof.values, axis=-1))
+        width = np.median((grad > 0.5 * grad.max(axis=-1, keepdims=True)).sum(axis=-1).reshape(len(around), -1), axis=1) * step_px
         good = (prof.length_px >= 8.0).all(axis=1) & prof.inside
         shift, stepped = step_positions(prof.values, offsets, falling_inwards=falling_inwards)
         edge = prof.base_px + shift[..., None] * prof.normal[:, :, None, :]          # (n, 4, samples, 2)
         if not trim:
-            good &= stepped.reshape(n, -1).all(axis=1)
+            good &= stepped.reshape(len(around), -1).all(axis=1)
             point, direction, _, rms = fit_edge_lines(edge)
             good &= rms.max(axis=1) <= max_residual_px
         else:
@@ -136,21 +142,24 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
             point, direction, _, rms = fit_edge_lines(edge, keep)
             good &= (keep.mean(axis=2) >= 0.75).all(axis=1) & (np.nan_to_num(rms, nan=np.inf).max(axis=1) <= 1.5 * max_residual_px)
         found, crossed = edge_corners(point, direction)
-        return found, good & crossed
+        return found, good & crossed, width
 
-    corners, ok = lines(quads, half_px, False)
+    corners, ok, width = lines(quads, half_px, False)
     # Again, centred on the lines found, over twice the reach: a motion blur wider than the first window (up to
     # 12 px against +-4 px) leaves a flat gradient across it, whose centroid is the window's centre, i.e. the
     # detector's corners, which blur pulls inwards. Only a rise from the black border out to the white base
     # counts in the wider window: a small tag's first code cell (white inside black) lies within it.
-    again, ok2 = lines(np.where(ok[:, None, None], corners, quads), 2.0 * half_px, True, trim=True)
-    # A tag whose first pass failed (its edges' steps flattened by the blur) may still be found by the second.
-    # The detector's corners can lie 4-5 px inside a tag blurred by 12 px: the second pass's corners may lie as
-    # far from them as its own reach.
-    ok2 &= np.linalg.norm(again - quads, axis=2).max(axis=1) <= 2.0 * half_px
+    # Only where the step is wider than 3 px (a sharp edge's is about 2 px: the first window holds it whole) or
+    # the first pass failed (its edges' steps flattened by the blur): sharp frames keep their corners as before.
     ok &= np.linalg.norm(corners - quads, axis=2).max(axis=1) <= half_px
-    corners = np.where(ok2[:, None, None], again, corners)
-    ok |= ok2
+    redo = np.nonzero(~ok | (width > 3.0))[0]
+    if len(redo):
+        again, ok2, _ = lines(np.where(ok[redo, None, None], corners[redo], quads[redo]), 2.0 * half_px, True, trim=True)
+        # The detector's corners can lie 4-5 px inside a tag blurred by 12 px: the second pass's corners may lie as
+        # far from them as its own reach.
+        ok2 &= np.linalg.norm(again - quads[redo], axis=2).max(axis=1) <= 2.0 * half_px
+        corners[redo] = np.where(ok2[:, None, None], again, corners[redo])
+        ok[redo] |= ok2
     return [corners[i] if ok[i] else None for i in range(n)]
 
 
