@@ -206,7 +206,7 @@ def joint_solve(
         # over 1 mm at the entry while the marker's RMS, diluted by its BBs, still looks ordinary): before the
         # marker itself is judged, a tag whose corners stand out, or a marker that would be rejected, is tried on
         # three corners (once per marker). Nothing stands out where every marker fits badly (a mirror start).
-        standing_out = [i for i in ids if chi[i] > outlier_chi and chi[i] > 3.0 * float(np.median([chi[j] for j in ids if j != i] or [0.0]))]
+        standing_out = [i for i in ids if _stands_out(chi, i, ids, outlier_chi)]
         suspects = [i for i in _corner_suspects(sol, corners_px, ids, corner_min_px) + sorted(standing_out, key=lambda i: -chi[i]) if i not in dropped]
         if suspects:
             i = suspects[0]
@@ -218,8 +218,7 @@ def joint_solve(
                 dropped[i] = (found,)
             continue
         worst = max(ids, key=lambda i: chi[i])
-        others = [chi[i] for i in ids if i != worst]
-        if len(ids) > min_markers and chi[worst] > outlier_chi and chi[worst] > 3.0 * float(np.median(others)):
+        if len(ids) > min_markers and _stands_out(chi, worst, ids, outlier_chi):
             rejected.append(worst)
             ids = [i for i in ids if i != worst]
             continue
@@ -235,6 +234,11 @@ def joint_solve(
     # The final fit is plain least squares: its Jacobian gives the covariance.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
     return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected), "dropped_corners": {i: k for i, k in dropped.items() if i in ids and k}})
+
+
+def _stands_out(chi: dict[int, float], marker_id: int, ids, outlier_chi: float) -> bool:
+    """Whether a marker's RMS normalised residual is over ``outlier_chi`` and 3 times the other markers' median."""
+    return chi[marker_id] > outlier_chi and chi[marker_id] > 3.0 * float(np.median([chi[j] for j in ids if j != marker_id] or [0.0]))
 
 
 def _corner_errors_px(sol: JointSolution, corners_px) -> dict[int, NDArray[np.float64]]:

@@ -115,13 +115,16 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
     along = np.linspace(0.2, 0.8, samples)
 
     def lines(around: NDArray[np.float64], reach_px: float, falling_inwards: bool, trim: bool = False
-              ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
-        """Corners (m, 4, 2), whether found (m,), and each tag's median step width (m,): px where the gradient is
-        over half its peak (about 2 px for a sharp edge, the blur's extent for a wide one)."""
+              ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
+        """Corners (m, 4, 2), whether found (m,), and (first pass only, else None) each tag's median step width
+        (m,): px where the gradient is over half its peak (about 2 px for a sharp edge, the blur's extent for a
+        wide one)."""
         offsets = np.arange(-reach_px, reach_px + step_px / 2, step_px)
         prof = edge_profiles(gray, around, along=along, offsets_px=offsets)
-        grad = np.abs(np.diff(prof.values, axis=-1))
-        width = np.median((grad > 0.5 * grad.max(axis=-1, keepdims=True)).sum(axis=-1).reshape(len(around), -1), axis=1) * step_px
+        width = None
+        if not trim:
+            grad = np.abs(np.diff(prof.values, axis=-1))
+            width = np.median((grad > 0.5 * grad.max(axis=-1, keepdims=True)).sum(axis=-1).reshape(len(around), -1), axis=1) * step_px
         good = (prof.length_px >= 8.0).all(axis=1) & prof.inside
         shift, stepped = step_positions(prof.values, offsets, falling_inwards=falling_inwards)
         edge = prof.base_px + shift[..., None] * prof.normal[:, :, None, :]          # (n, 4, samples, 2)
