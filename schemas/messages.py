@@ -196,7 +196,7 @@ class Status(_Message):
     stamp_ns: NonNegInt
     state: str = Field(description="uncalibrated | waiting for fluoroscopy | registered | registration failed: <why>")
     registration_id: NonNegInt
-    views: tuple[str, ...]
+    views: tuple[str, ...] = Field(description="the views of the registration in use (a shot still being registered is not among them)")
     frames_received: NonNegInt
     frames_processed: NonNegInt
     frames_dropped: NonNegInt

@@ -117,6 +117,9 @@ class RegistrationNode:
         self.registration_id = 0
         self.poses: tuple[MarkerPose, ...] = ()
         self.shots: dict[str, _Shot] = {}
+        # The views of the registration in use (the status's ``views``): a shot is held before its registration is
+        # done, and a status naming it then would tell a client that frames are already tracked against it.
+        self.registered_views: tuple[str, ...] = ()
         self.last_axis: msg.DrillAxis | None = None
         self.last_axis_ct: msg.DrillAxis | None = None
         self.last_error: str | None = None
@@ -358,6 +361,7 @@ class RegistrationNode:
         if not good:  # one is enough: the camera's markers claim the others' BBs when each frame is registered (video_claims)
             raise DrillnavError(f"no marker pose converged in views {names}; at least 1 is needed")
         self.poses = tuple(poses)
+        self.registered_views = tuple(names)
         self.registration_id += 1
         self.counters.registrations += 1
         self._registration_state = "registered"
@@ -467,7 +471,7 @@ class RegistrationNode:
         pending = max(0, c.shots_received - c.shots_registered - c.shots_superseded - c.shots_failed)
         ct = self.ct_tracker.status() if self.ct_tracker is not None else {}
         return msg.Status(
-            stamp_ns=time.time_ns(), state=self.state, registration_id=self.registration_id, views=tuple(self.shots),
+            stamp_ns=time.time_ns(), state=self.state, registration_id=self.registration_id, views=self.registered_views,
             frames_received=c.frames_received, frames_processed=c.frames_processed, frames_dropped=c.frames_dropped,
             axes_published=c.axes_published, shots_received=c.shots_received, registrations=c.registrations,
             registration_failures=c.registration_failures,

@@ -43,7 +43,8 @@ class BusDaemon:
 
     def __init__(self, session) -> None:
         self.session = session
-        self.axes: dict[int, dict[str, Any]] = {}
+        self.axes: dict[int, dict[str, Any]] = {}  # written by the bus thread: read through axis_nearest (under the lock)
+        self._axes_lock = threading.Lock()
         self.breach = False
         self.axes_on = threading.Event()
         self.camera_on = threading.Event()
@@ -72,6 +73,11 @@ class BusDaemon:
         self.camera_on.set()
         self._thread.start()
 
+    def axis_nearest(self, stamp_ns: float) -> dict[str, Any]:
+        """The published axis whose source frame stamp is nearest ``stamp_ns`` (JS numbers hold ns stamps to ~0.3 us)."""
+        with self._axes_lock:
+            return self.axes[min(self.axes, key=lambda s: abs(s - stamp_ns))]
+
     def _run(self) -> None:
         n, next_t = 0, time.monotonic()
         while not self._stop.is_set():
@@ -94,7 +100,8 @@ class BusDaemon:
             axis = {"stamp_ns": stamp, "frame_id": "carm", "point_mm": point.tolist(), "direction": d.tolist(),
                     "predicted_error": {"position_mm": 1.1, "angle_deg": 0.9}, "source_frame_stamp_ns": stamp - 20_000_000, "registration_id": 1,
                     "markers_used": [1, 22, 29, 36], "markers_rejected": [], "fre_mm": {}}
-            self.axes[axis["source_frame_stamp_ns"]] = axis
+            with self._axes_lock:
+                self.axes[axis["source_frame_stamp_ns"]] = axis
             self.session.put(key(PREFIX, "axis_carm"), msg.encode_json(axis))
             ct_from_carm = np.linalg.inv(CARM_FROM_CT)
             conf = {"trajectory": "T1", "breach": self.breach, "min_clearance_mm": 0.3 if self.breach else 2.4, "axis_to_planned_entry_mm": 1.0,
@@ -187,7 +194,7 @@ def assert_axis_on_projection(got: dict[str, Any], bus: BusDaemon) -> None:
     """``got`` (``axis_pixels_js``, per view): the page's record and the axis pixels lie within 2 px of P applied to the published axis."""
     assert set(got) == set(VIEWS)
     for name, g in got.items():
-        axis = bus.axes[min(bus.axes, key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))]  # JS numbers hold ns stamps to ~0.3 us
+        axis = bus.axis_nearest(g["drawn"]["source_frame_stamp_ns"])
         view = VIEWS[name]
         p = np.asarray(axis["point_mm"])
         a, b = view.project(np.vstack([p, p + 100 * np.asarray(axis["direction"])]))

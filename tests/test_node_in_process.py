@@ -32,6 +32,14 @@ def register_both_views(pub, prefix, node, shots):
     raise AssertionError(f"the node did not register both views: {node.status()}")
 
 
+def _why(node: RegistrationNode) -> str:
+    """The status fields that say why a frame gave no axis (pytest shortens a whole Status past them)."""
+    st = node.status()
+    return (f"state {st.state!r}, registration {st.registration_id} of views {st.views}, frames received / processed / dropped "
+            f"{st.frames_received} / {st.frames_processed} / {st.frames_dropped}, axes {st.axes_published}, last error {st.last_error!r}, "
+            f"loop errors {st.loop_errors}")
+
+
 def test_frames_handed_in_process_are_tracked_and_bad_pixels_refused():
     scene = make_scene(seed=21, render=False)
     recorded = list(iter_recording(RECORDING))
@@ -66,7 +74,7 @@ def test_frames_handed_in_process_are_tracked_and_bad_pixels_refused():
                 decoded = [msg.decode_compressed_image(d) for d in jpegs]
                 for image, stamp, _ in decoded:
                     node.take_frame(image, stamp)
-                    assert wait_for(lambda s=stamp: any(a["source_frame_stamp_ns"] == s for a in list(axes)), 10), node.status()
+                    assert wait_for(lambda s=stamp: any(a["source_frame_stamp_ns"] == s for a in list(axes)), 10), _why(node)
                 assert node.counters.frames_received == len(decoded)
 
                 # Each axis is the drill's: within the replay test's bounds of the recorded truth at the corridor entry.
@@ -85,5 +93,44 @@ def test_frames_handed_in_process_are_tracked_and_bad_pixels_refused():
                 node.take_frame(image, stamp + 10**9)
                 assert wait_for(lambda: node.counters.axes_published > before, 10)
                 assert wait_for(lambda: any("camera frame: expected" in e.get("message", "") for e in list(events)), 5), events
+        finally:
+            sub.undeclare()
+
+
+def test_the_status_names_a_view_only_once_frames_are_tracked_against_it(monkeypatch):
+    """A shot is held before its registration is done: the status's ``views`` wait for the registration, so a client
+    that hands frames once the status names both views gets an axis for each (a frame with no registration yet gives none)."""
+    import drillnav.service.node as node_module
+
+    scene = make_scene(seed=21, render=False)
+    recorded = list(iter_recording(RECORDING))
+    shots = [data for topic, _, data in recorded if topic.endswith("fluoro/shot")]
+    image, stamp, _ = msg.decode_compressed_image(next(data for topic, _, data in recorded if topic.endswith("camera/image")))
+    registering = threading.Event()
+
+    def slow_register(*args, **kwargs):
+        registering.set()
+        time.sleep(1.5)  # a loaded machine: the shots are held well before their registration is done
+        return register_markers(*args, **kwargs)
+
+    register_markers = node_module.register_markers
+    monkeypatch.setattr(node_module, "register_markers", slow_register)
+    ep = free_endpoint()
+    axes: list[dict] = []
+    with open_session(listen=[ep]) as pub, open_session(connect=[ep]) as node_session:
+        sub = pub.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(json.loads(s.payload.to_bytes())))
+        try:
+            with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
+                                  axis_drill=scene.calibrated_axis_drill, camera_on_bus=False) as node:
+                for _ in range(10):  # a put before the node's subscription reached the publisher is lost: put again
+                    for s in shots:
+                        pub.put(key("drillnav", "fluoro_shot"), s)
+                    if registering.wait(3):
+                        break
+                assert registering.is_set(), _why(node)
+                assert len(node.shots) >= 1 and node.status().views == (), _why(node)  # held, not yet registered: not named
+                assert wait_for(lambda: len(node.status().views) == len(shots), 30), _why(node)
+                node.take_frame(image, stamp)
+                assert wait_for(lambda: any(a["source_frame_stamp_ns"] == stamp for a in list(axes)), 10), _why(node)
         finally:
             sub.undeclare()
