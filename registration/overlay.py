@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .carm import CArmView
+from .carm import CArmView, intensifier_shift_px
 from .fluoro_markers import FluoroDetections
 from .line import Line3D
 
-__all__ = ["to_display", "draw_axis", "draw_detections", "annotate", "line_across_image", "mask_markers",
+__all__ = ["to_display", "draw_axis", "draw_detections", "annotate", "line_across_image", "axis_curve_px", "mask_markers",
            "AXIS_BGR", "CONE_BGR", "PLAN_BGR", "ENTRY_BGR", "OK_BGR", "ALARM_BGR", "STALE_BGR"]
 
 
@@ -58,6 +58,63 @@ def line_across_image(view: CArmView, axis: Line3D) -> tuple[NDArray[np.float64]
     return (p, q) if (q - p) @ (b - a) >= 0 else (q, p)
 
 
+# An image intensifier bends the image of a straight line: the axis is drawn through this many points across the image.
+CURVE_POINTS = 65
+
+
+def _distorted(view: CArmView, uv_px: NDArray[np.float64], distortion_px: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """Ideal pixels (N, 2) moved by an intensifier's distortion (2,) (pincushion, S at the field's corner, px); as given without one."""
+    if distortion_px is None:
+        return uv_px
+    return uv_px + intensifier_shift_px(uv_px, view.center_px, view.corner_radius_px, np.asarray(distortion_px, dtype=np.float64))
+
+
+def _project(view: CArmView, points_carm_mm: NDArray[np.float64], distortion_px: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    return _distorted(view, view.project(points_carm_mm), distortion_px)
+
+
+def _clip_to_image(view: CArmView, curve_px: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The part (K, 2) of a polyline that runs through the image, its ends cut at the border; None when it misses it.
+
+    The curve is an intensifier's image of a line: it crosses the border at most twice.
+    """
+    lo, hi = np.array([-0.5, -0.5]), np.array([view.columns - 0.5, view.rows - 0.5])
+    inside = np.all((curve_px >= lo) & (curve_px <= hi), axis=1)
+    if not inside.any():
+        return None
+    i, j = int(np.argmax(inside)), len(inside) - 1 - int(np.argmax(inside[::-1]))
+    kept = [curve_px[i:j + 1]]
+    for k, (a, b) in ((0, (i - 1, i)), (1, (j + 1, j))):  # from the outside point to the inside one
+        if 0 <= a < len(curve_px):
+            p, q = curve_px[a], curve_px[b]
+            d = q - p
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.nanmax(np.concatenate([np.where(p < lo, (lo - p) / d, 0.0), np.where(p > hi, (hi - p) / d, 0.0)]))
+            cut = p + float(np.clip(t, 0.0, 1.0)) * d
+            kept.insert(0 if k == 0 else len(kept), cut[None])
+    return np.vstack(kept)
+
+
+def axis_curve_px(view: CArmView, axis: Line3D, distortion_px: NDArray[np.float64] | None = None) -> NDArray[np.float64] | None:
+    """The image of the (infinite) axis across the detector, in the drill's direction: (K, 2) pixels (column, row).
+
+    Without ``distortion_px`` the two border points of :func:`line_across_image`. With an intensifier's distortion
+    (2,) (pincushion and S shift at the field's corner, px, as the joint solve estimates it) the line's image is
+    bent: :data:`CURVE_POINTS` points along it, its ends on the border. None when it misses the image.
+    """
+    seg = line_across_image(view, axis)
+    if distortion_px is None:
+        return None if seg is None else np.vstack(seg)
+    # The ideal line a little beyond the border either side: pincushion pulls its ends in, barrel pushes them out.
+    a, b = view.project(np.vstack([axis.point_mm, axis.point_mm + 100.0 * axis.direction]))
+    u = (b - a) / np.linalg.norm(b - a)
+    c = view.center_px
+    mid = a + ((c - a) @ u) * u  # the line's point nearest the centre
+    reach = 1.2 * view.corner_radius_px
+    ideal = mid + np.linspace(-reach, reach, CURVE_POINTS)[:, None] * u
+    return _clip_to_image(view, _distorted(view, ideal, distortion_px))
+
+
 def _px(points: NDArray[np.float64]) -> NDArray[np.int32]:
     """Pixel coordinates to cv2's fixed point (4 fractional bits): sub-pixel lines, as the browser draws them."""
     return np.round(np.atleast_2d(points) * 16).astype(np.int32)
@@ -68,11 +125,13 @@ def _thickness(bgr: NDArray[np.uint8]) -> int:
 
 
 def draw_axis(bgr: NDArray[np.uint8], view: CArmView, axis: Line3D, *, cone_half_angle_deg: float, position_error_mm: float = 0.0,
-              stale: bool = False) -> NDArray[np.uint8]:
+              stale: bool = False, distortion_px: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:
     """The axis across the whole image (yellow, outlined), its error cone (orange band) and its working point.
 
     The cone is the predicted position error at ``axis.point_mm`` widening by ``cone_half_angle_deg`` either side
     of it, in the plane of the axis and the beam; ``stale`` draws everything grey (an axis that is not live).
+    ``distortion_px`` (2,): the view's intensifier distortion as the registration estimated it (pincushion and S
+    shift at the field's corner, px); everything is drawn where that image intensifier shows it.
     """
     out = bgr.copy()
     lw = _thickness(out)
@@ -84,25 +143,24 @@ def draw_axis(bgr: NDArray[np.uint8], view: CArmView, axis: Line3D, *, cone_half
     r = (position_error_mm + np.abs(s) * np.tan(np.radians(cone_half_angle_deg)))[:, None]
     ahead = view.depth_mm(centres) > 1.0  # points behind the source have no image
     if ahead.sum() > 1:
-        upper, lower = view.project((centres + r * side)[ahead]), view.project((centres - r * side)[ahead])
+        upper, lower = _project(view, (centres + r * side)[ahead], distortion_px), _project(view, (centres - r * side)[ahead], distortion_px)
         band = out.copy()
         cv2.fillPoly(band, [_px(np.vstack([upper, lower[::-1]]))], STALE_BGR if stale else CONE_BGR, cv2.LINE_AA, 4)
         out = cv2.addWeighted(band, 0.3, out, 0.7, 0.0)
         for edge in (upper, lower):
             cv2.polylines(out, [_px(edge)], False, STALE_BGR if stale else CONE_BGR, max(1, lw // 2), cv2.LINE_AA, 4)
-    seg = line_across_image(view, axis)
-    if seg is not None:
-        a, b = _px(np.vstack(seg))
-        cv2.line(out, tuple(a), tuple(b), (0, 0, 0), lw * 2, cv2.LINE_AA, 4)
-        cv2.line(out, tuple(a), tuple(b), STALE_BGR if stale else AXIS_BGR, lw, cv2.LINE_AA, 4)
+    curve = axis_curve_px(view, axis, distortion_px)
+    if curve is not None and len(curve) >= 2:
+        cv2.polylines(out, [_px(curve)], False, (0, 0, 0), lw * 2, cv2.LINE_AA, 4)
+        cv2.polylines(out, [_px(curve)], False, STALE_BGR if stale else AXIS_BGR, lw, cv2.LINE_AA, 4)
         # An arrowhead near the far border: the way the drill advances.
-        u = (seg[1] - seg[0]) / np.linalg.norm(seg[1] - seg[0])
-        tip = seg[1] - 4 * lw * u
+        u = (curve[-1] - curve[-2]) / max(float(np.linalg.norm(curve[-1] - curve[-2])), 1e-9)
+        tip = curve[-1] - 4 * lw * u
         k = 6 * lw
         tri = np.array([tip, tip - k * u + 0.5 * k * np.array([-u[1], u[0]]), tip - k * u - 0.5 * k * np.array([-u[1], u[0]])])
         cv2.fillPoly(out, [_px(tri)], STALE_BGR if stale else AXIS_BGR, cv2.LINE_AA, 4)
     if view.depth_mm(axis.point_mm[None])[0] > 1.0:
-        c = _px(view.project(axis.point_mm[None]))[0]
+        c = _px(_project(view, axis.point_mm[None], distortion_px))[0]
         cv2.circle(out, tuple(c), 2 * lw * 16, STALE_BGR if stale else ENTRY_BGR, -1, cv2.LINE_AA, 4)
         cv2.circle(out, tuple(c), 2 * lw * 16, (0, 0, 0), max(1, lw // 2), cv2.LINE_AA, 4)
     return out

@@ -92,6 +92,9 @@ class JointRefinement:
     covariance_drill: NDArray[np.float64]
     pivot_drill_mm: NDArray[np.float64]
     at_ns: int
+    # ((view, (2,) pincushion and S shift at the field's corner, px), ...): each image intensifier view's distortion
+    # as the solve estimated it; the frames after it draw their axis with it.
+    detector_distortion_px: tuple = ()
 
 
 def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tuple[MarkerPose, ...]:
@@ -110,7 +113,8 @@ def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], c
         return None
     # reg.marker_poses adds the markers claimed through the video (edge-on in fluoroscopy): the frames after it use them too
     return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg), covariance_drill=reg.covariance_drill,
-                           pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns)
+                           pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns,
+                           detector_distortion_px=reg.detector_distortion_px)
 
 
 def refinement_fits(refinement: JointRefinement | None, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration) -> bool:
@@ -230,7 +234,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
         video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, **recover)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
-                      method="horn+pnp on joint-refined markers")
+                      method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
         poses = refinement.poses
     poses = reg.marker_poses or poses  # with the markers claimed through the video (edge-on in fluoroscopy)
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)

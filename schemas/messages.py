@@ -164,6 +164,10 @@ class DrillAxis(_Message):
     markers_rejected: tuple[int, ...] = ()
     fre_mm: dict[str, float] = Field(default_factory=dict, description="per marker id: fiducial registration error, mm")
     carm_from_drill: Transform | None = None
+    detector_distortion_px: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="per fluoroscopy view from an image intensifier: its distortion as the registration estimated it, "
+        "(pincushion, S) shift at the field's corner, px (docs/geometry.md#image-intensifier-distortion); a display draws the axis "
+        "bent by it. Empty for flat panels")
     ct_registration_id: NonNegInt | None = None
     ct_similarity_gc: float | None = None
     carm_from_ct: Transform | None = None

@@ -131,7 +131,7 @@ class RegistrationNode:
         self._wake = threading.Condition()
         self._stop = threading.Event()
         self._reported: set[tuple[str, str]] = set()
-        self._overlay_axis: tuple[Line3D, float, int] | None = None
+        self._overlay_axis: tuple[Line3D, float, int, dict[str, tuple[float, float]]] | None = None
         self._last_frame_in_ns = 0     # monotonic: when a frame last arrived
         self._last_frame_done_ns = 0   # monotonic: when the frame loop last finished a frame (axis or a refusal)
         self._started_ns = 0
@@ -407,6 +407,9 @@ class RegistrationNode:
         # Scheduled on capture time: a replay re-solves and adopts on the same frames.
         fa = self.joint.track(image, calibration=calibration, poses=poses, stamp_ns=stamp, limits=self.reliable_limits)
         reg, pe = fa.registration, fa.predicted_error
+        # Each intensifier view's estimated distortion, by the name of the shot it was estimated on (views by identity).
+        shots = dict(self.shots)
+        distortion = {name: (float(c[0]), float(c[1])) for v, c in reg.detector_distortion_px for name, shot in shots.items() if shot.view is v}
         now = time.time_ns()
         error = msg.PredictedError(position_mm=float(pe.position_mm), angle_deg=float(pe.angle_deg),
                                    position90_mm=_finite_or_none(pe.position90_mm), angle90_deg=_finite_or_none(pe.angle90_deg))
@@ -414,7 +417,7 @@ class RegistrationNode:
             stamp_ns=now, frame_id="carm", **msg.drill_axis_fields(point_mm=fa.axis_carm.point_mm, direction=fa.axis_carm.direction, carm_from_drill=reg.carm_from_drill),
             predicted_error=error, source_frame_stamp_ns=stamp, registration_id=self.registration_id, sequence=self._sequence, reliable=bool(pe.reliable),
             markers_used=tuple(int(i) for i in reg.used_ids), markers_rejected=tuple(int(i) for i in reg.rejected_ids),
-            fre_mm={str(k): float(v) for k, v in reg.fre_mm.items()},
+            fre_mm={str(k): float(v) for k, v in reg.fre_mm.items()}, detector_distortion_px=distortion,
         )
         self._pub_axis.put(axis_msg.to_bytes())
         self._sequence += 1
@@ -430,7 +433,7 @@ class RegistrationNode:
         self.counters.last_latency_ms = latency
         self.counters.latencies_ms.append(latency)
         with self._wake:
-            self._overlay_axis = (fa.axis_full_carm, pe.angle_deg, now)
+            self._overlay_axis = (fa.axis_full_carm, pe.angle_deg, now, distortion)
             self._wake.notify_all()
         # After the axis (never in its latency): the tags this frame showed, for the display's camera preview and tools.
         self._pub_video.put(msg.VideoMarkers(
@@ -447,7 +450,7 @@ class RegistrationNode:
                     self._wake.wait(0.2)
                 if self._stop.is_set():
                     return
-                (axis, cone_deg, stamp), self._overlay_axis = self._overlay_axis, None
+                (axis, cone_deg, stamp, distortion), self._overlay_axis = self._overlay_axis, None
             try:
                 shots = dict(self.shots)
                 base = {k: v for k, v in base.items() if k[0] in shots and shots[k[0]].stamp_ns == k[1]}
@@ -455,7 +458,9 @@ class RegistrationNode:
                     k = (name, shot.stamp_ns)
                     if k not in base:
                         base[k] = draw_detections(to_display(shot.image), shot.detections)
-                    bgr = annotate(draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg), view_name=name, stamp_ns=shot.stamp_ns, legend=False)
+                    coef = np.asarray(distortion[name]) if name in distortion else None
+                    bgr = annotate(draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg, distortion_px=coef), view_name=name,
+                                   stamp_ns=shot.stamp_ns, legend=False)
                     self.session.put(key(self.prefix, "overlay", name), msg.compressed_image(bgr, stamp_ns=stamp, frame_id=f"carm/{name}", fmt="jpeg", quality=80))
             except Exception as exc:  # noqa: BLE001 - a worker survives what it did not foresee
                 self._loop_error("overlay", exc)

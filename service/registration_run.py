@@ -81,7 +81,8 @@ def run_registration(args: argparse.Namespace) -> dict:
         "carm_from_drill": transform_to_json(reg.carm_from_drill),
         "drill_axis_carm": axis_to_json(axis_out),
         "views": [{"file": img.source_file, "frame": img.frame_index, "geometry": img.geometry_source, "line_px": [float(v) for v in axis_c.project(img.view.projection_matrix)],
-                   "markers_identified": sorted(m.marker_id for m in det.markers), "rejected": [r.reason for r in det.rejected]}
+                   "markers_identified": sorted(m.marker_id for m in det.markers), "rejected": [r.reason for r in det.rejected],
+                   "detector_distortion_px": _distortion_of(reg, img.view)}
                   for img, det in zip(images, detections)],
         "markers": [{"id": p.marker_id, "position_carm_mm": [float(v) for v in p.position_carm_mm], "fre_mm": reg.fre_mm.get(p.marker_id),
                      "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged, "rejected": p.marker_id in reg.rejected_ids} for p in poses],
@@ -96,11 +97,18 @@ def run_registration(args: argparse.Namespace) -> dict:
         out_dir = check_output_dir(args.overlays)
         for img, det in zip(images, detections):
             base = mask_markers(img.pixels_log, det) if args.mask_markers else img.pixels_log
-            bgr = draw_axis(draw_detections(to_display(base), det), img.view, axis_c, cone_half_angle_deg=pe.cone_half_angle_deg, position_error_mm=pe.position_mm)
+            coef = _distortion_of(reg, img.view)
+            bgr = draw_axis(draw_detections(to_display(base), det), img.view, axis_c, cone_half_angle_deg=pe.cone_half_angle_deg, position_error_mm=pe.position_mm,
+                            distortion_px=None if coef is None else np.asarray(coef))
             bgr = annotate(bgr, view_name=img.view_name, predicted_error=(pe.position_mm, pe.angle_deg))
             cv2.imwrite(str(out_dir / f"{Path(img.source_file).stem}-{img.frame_index}.png"), bgr)
         timings["overlays_s"] = time.perf_counter() - t
     return result
+
+
+def _distortion_of(reg, view) -> list[float] | None:
+    """The view's intensifier distortion as the registration estimated it ([pincushion, S] at the field's corner, px); None for a flat panel."""
+    return next(([float(c[0]), float(c[1])] for v, c in reg.detector_distortion_px if v is view), None)
 
 
 def _ct_mode(args: argparse.Namespace, images, detections, axis_carm, cone_half_angle_deg: float, timings: dict[str, float]) -> dict:

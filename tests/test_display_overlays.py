@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drillnav.registration.carm import CArmView
+from drillnav.registration.carm import CArmView, intensifier_shift_px
 from drillnav.registration.ct_views import PlannedTrajectory, compose_views, render_ct_views
 from drillnav.registration.line import Line3D
-from drillnav.registration.overlay import ALARM_BGR, AXIS_BGR, OK_BGR, annotate, draw_axis, line_across_image
+from drillnav.registration.overlay import ALARM_BGR, AXIS_BGR, OK_BGR, annotate, axis_curve_px, draw_axis, line_across_image
 from drillnav.registration.volume import Volume
 from drillnav.service.display_hub import ct_for_display
 
@@ -42,6 +42,38 @@ def test_axis_runs_across_the_whole_image_on_its_projection(direction):
     assert _distance(np.vstack([c - 500 * u, c + 500 * u]), a, b).max() < 1.0  # the drawn line's fit lies on the projection
     span = np.ptp(np.stack([xs, ys], axis=1) @ ((q - p) / np.linalg.norm(q - p)))
     assert span > 0.9 * np.linalg.norm(q - p), f"drawn {span:.0f} px of {np.linalg.norm(q - p):.0f}"
+
+
+def test_an_intensifier_view_draws_the_axis_bent_as_its_image_shows_it():
+    """With a view's estimated distortion the drawn axis follows the distorted image of the line (within 2 px
+    along all of it, ends on the border), not the ideal projection it leaves by the distortion's size near the border."""
+    axis = Line3D(point_mm=np.array([40.0, -35.0, 8.0]), direction=np.array([0.6, 0.3, 0.74]))  # off the centre: bent most
+    k = np.array([14.0, -8.0])  # pincushion, S at the field's corner, px: an uncorrected intensifier
+    curve = axis_curve_px(VIEW, axis, k)
+    ideal = np.vstack(line_across_image(VIEW, axis))
+    assert curve.shape[0] > 20
+    for x, y in curve[[0, -1]]:  # both ends on the border
+        assert min(abs(x + 0.5), abs(x - 975.5), abs(y + 0.5), abs(y - 975.5)) < 1e-6
+    assert (curve[-1] - curve[0]) @ (ideal[1] - ideal[0]) > 0  # ordered the way the drill advances
+    # Every curve point is the distortion of a point of the ideal line.
+    t = np.linspace(-0.2, 1.2, 4001)[:, None]
+    line = ideal[0] + t * (ideal[1] - ideal[0])
+    bent_line = line + intensifier_shift_px(line, VIEW.center_px, VIEW.corner_radius_px, k)
+    assert np.min(np.linalg.norm(curve[:, None] - bent_line[None], axis=2), axis=1).max() < 0.5
+    img = draw_axis(np.full((976, 976, 3), 60, np.uint8), VIEW, axis, cone_half_angle_deg=1.0, position_error_mm=1.0, distortion_px=k)
+    ys, xs = np.nonzero(np.all(np.abs(img.astype(int) - AXIS_BGR) < 12, axis=2))
+    pts = np.stack([xs, ys], axis=1).astype(float)
+    to_bent = np.min(np.linalg.norm(pts[:, None] - bent_line[None, ::4], axis=2), axis=1)
+    body = pts[np.linalg.norm(pts - curve[-1], axis=1) > 50]  # leaving out the arrowhead (16-40 px from the end, 12 px either side)
+    assert np.min(np.linalg.norm(body[:, None] - bent_line[None, ::4], axis=2), axis=1).max() < 4.0  # the line is 4 px wide
+    # Where the bent line is over 6 px from the ideal one, the drawing follows the bent line.
+    far = bent_line[::4][_distance(bent_line[::4], *ideal) > 6.0]
+    assert len(far) > 20
+    there = body[np.min(np.linalg.norm(body[:, None] - far[None], axis=2), axis=1) < 3.0]
+    off_bent = np.min(np.linalg.norm(there[:, None] - bent_line[None, ::4], axis=2), axis=1).mean()
+    off_ideal = _distance(there, *ideal).mean()
+    assert off_bent < 2.0 and off_ideal > 4.0, f"drawn {off_bent:.1f} px from the bent line, {off_ideal:.1f} px from the ideal one"
+    assert to_bent.size > 0.9 * 4 * np.linalg.norm(curve[-1] - curve[0])  # drawn across the whole image
 
 
 def test_axis_missing_the_image_draws_no_line():

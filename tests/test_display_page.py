@@ -22,7 +22,8 @@ from conftest import free_endpoint, free_port
 from display_browser import axis_pixels_js, fit_line_px, launch, line_distance_px, require_chromium
 from drillnav.registration.carm import CArmView
 from drillnav.registration.ct_views import PlannedTrajectory
-from drillnav.registration.overlay import to_display
+from drillnav.registration.line import Line3D
+from drillnav.registration.overlay import axis_curve_px, to_display
 from drillnav.registration.volume import Volume
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
@@ -46,6 +47,7 @@ class BusDaemon:
         self.axes: dict[int, dict[str, Any]] = {}  # written by the bus thread: read through axis_nearest (under the lock)
         self._axes_lock = threading.Lock()
         self.breach = False
+        self.distortion: dict[str, list[float]] = {}  # per view: an intensifier's estimated distortion, sent on every axis
         self.axes_on = threading.Event()
         self.camera_on = threading.Event()
         self.last_axis_ns = 0
@@ -99,7 +101,7 @@ class BusDaemon:
             point = np.array([2.0 * np.sin(n / 15), -4.0, 3.0])
             axis = {"stamp_ns": stamp, "frame_id": "carm", "point_mm": point.tolist(), "direction": d.tolist(),
                     "predicted_error": {"position_mm": 1.1, "angle_deg": 0.9}, "source_frame_stamp_ns": stamp - 20_000_000, "registration_id": 1,
-                    "markers_used": [1, 22, 29, 36], "markers_rejected": [], "fre_mm": {}}
+                    "markers_used": [1, 22, 29, 36], "markers_rejected": [], "fre_mm": {}, "detector_distortion_px": dict(self.distortion)}
             with self._axes_lock:
                 self.axes[axis["source_frame_stamp_ns"]] = axis
             self.session.put(key(PREFIX, "axis_carm"), msg.encode_json(axis))
@@ -190,9 +192,9 @@ def page(served):
     page.close()
 
 
-def assert_axis_on_projection(got: dict[str, Any], bus: BusDaemon) -> None:
+def assert_axis_on_projection(got: dict[str, Any], bus: BusDaemon, views: set[str] | None = None) -> None:
     """``got`` (``axis_pixels_js``, per view): the page's record and the axis pixels lie within 2 px of P applied to the published axis."""
-    assert set(got) == set(VIEWS)
+    assert set(got) == (set(VIEWS) if views is None else views)
     for name, g in got.items():
         axis = bus.axis_nearest(g["drawn"]["source_frame_stamp_ns"])
         view = VIEWS[name]
@@ -226,6 +228,48 @@ def test_drawn_axis_lies_on_the_projection_of_the_published_axis(served, page):
             continue
         assert_axis_on_projection(got, bus)
         time.sleep(0.2)
+
+
+def test_an_intensifier_view_draws_the_axis_bent_by_its_estimated_distortion(served, page):
+    """An axis carrying a view's intensifier distortion: that view's axis is drawn along the distorted image of the
+    line (the page's record equals the product's own curve, registration/overlay.py; the pixels lie on it, away
+    from the straight projection where the two part), the flat views as before."""
+    bus = served["bus"]
+    name, k = "p+0s-25", [12.0, -20.0]  # pincushion, S at the field's corner (px): S large, so the bend shows on an axis through the centre
+    view = VIEWS[name]
+    try:
+        bus.distortion = {name: k}
+        checked = 0
+        for _ in range(5):
+            page.wait_for_function(f"Object.values(window.drillnav.views).every(v => v.drawn && !v.drawn.stale) && window.drillnav.views['{name}'].drawn.distortion_px", timeout=5000)
+            got = page.evaluate(axis_pixels_js)
+            if any(g["drawn"]["stale"] for g in got.values()) or not got[name]["drawn"]["distortion_px"]:
+                continue
+            g = got.pop(name)
+            assert_axis_on_projection(got, bus, views=set(VIEWS) - {name})
+            axis = bus.axis_nearest(g["drawn"]["source_frame_stamp_ns"])
+            line = Line3D(point_mm=np.asarray(axis["point_mm"]), direction=np.asarray(axis["direction"]))
+            curve = np.asarray(g["drawn"]["curve"])
+            ours = axis_curve_px(view, line, np.asarray(k))
+            assert curve.shape == ours.shape and np.abs(curve - ours).max() < 0.5, (curve, ours)
+            dense = np.vstack([np.linspace(p, q, 20) for p, q in zip(ours[:-1], ours[1:])])
+            px = np.asarray(g["pixels"], dtype=np.float64)
+            body = px[np.linalg.norm(px - ours[-1], axis=1) > 50]  # the arrowhead left out
+            off = np.min(np.linalg.norm(body[:, None] - dense[None], axis=2), axis=1)
+            assert len(body) > 1000 and off.max() < 3.5, (len(body), off.max())
+            a, b = view.project(np.vstack([line.point_mm, line.point_mm + 100 * line.direction]))
+            parted = dense[line_distance_px(dense, a, b) > 5.0]
+            assert len(parted) > 20, "the distortion does not part the curve from the line: the test shows nothing"
+            there = body[np.min(np.linalg.norm(body[:, None] - parted[None], axis=2), axis=1) < 2.0]
+            assert len(there) > 50 and line_distance_px(there, a, b).min() > 3.0
+            checked += 1
+            if checked == 2:
+                break
+            time.sleep(0.2)
+        assert checked == 2, f"only {checked} live frames with the distortion drawn"
+    finally:
+        bus.distortion = {}
+    page.wait_for_function(f"window.drillnav.views['{name}'].drawn && !window.drillnav.views['{name}'].drawn.distortion_px", timeout=5000)
 
 
 def test_always_on_numbers(page):

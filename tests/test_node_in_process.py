@@ -2,6 +2,7 @@
 refused and counted, and the camera key on the bus is no longer the node's input (the daemon's own camera publishes
 there for the recorder and the display)."""
 
+import contextlib
 import json
 import threading
 import time
@@ -97,6 +98,21 @@ def test_frames_handed_in_process_are_tracked_and_bad_pixels_refused():
             sub.undeclare()
 
 
+@contextlib.contextmanager
+def node_and_axes(scene):
+    """A node on a real zenoh bus (its camera in this process) and the axes it publishes: yields (publisher session, node, axes)."""
+    ep = free_endpoint()
+    axes: list[dict] = []
+    with open_session(listen=[ep]) as pub, open_session(connect=[ep]) as node_session:
+        sub = pub.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(json.loads(s.payload.to_bytes())))
+        try:
+            with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
+                                  axis_drill=scene.calibrated_axis_drill, camera_on_bus=False) as node:
+                yield pub, node, axes
+        finally:
+            sub.undeclare()
+
+
 def test_the_status_names_a_view_only_once_frames_are_tracked_against_it(monkeypatch):
     """A shot is held before its registration is done: the status's ``views`` wait for the registration, so a client
     that hands frames once the status names both views gets an axis for each (a frame with no registration yet gives none)."""
@@ -115,22 +131,43 @@ def test_the_status_names_a_view_only_once_frames_are_tracked_against_it(monkeyp
 
     register_markers = node_module.register_markers
     monkeypatch.setattr(node_module, "register_markers", slow_register)
-    ep = free_endpoint()
-    axes: list[dict] = []
-    with open_session(listen=[ep]) as pub, open_session(connect=[ep]) as node_session:
-        sub = pub.declare_subscriber(key("drillnav", "axis_carm"), lambda s: axes.append(json.loads(s.payload.to_bytes())))
-        try:
-            with RegistrationNode(session=node_session, prefix="drillnav", marker_set=scene.marker_set, camera=scene.calibrated_camera,
-                                  axis_drill=scene.calibrated_axis_drill, camera_on_bus=False) as node:
-                for _ in range(10):  # a put before the node's subscription reached the publisher is lost: put again
-                    for s in shots:
-                        pub.put(key("drillnav", "fluoro_shot"), s)
-                    if registering.wait(3):
-                        break
-                assert registering.is_set(), _why(node)
-                assert len(node.shots) >= 1 and node.status().views == (), _why(node)  # held, not yet registered: not named
-                assert wait_for(lambda: len(node.status().views) == len(shots), 30), _why(node)
-                node.take_frame(image, stamp)
-                assert wait_for(lambda: any(a["source_frame_stamp_ns"] == stamp for a in list(axes)), 10), _why(node)
-        finally:
-            sub.undeclare()
+    with node_and_axes(scene) as (pub, node, axes):
+        for _ in range(10):  # a put before the node's subscription reached the publisher is lost: put again
+            for s in shots:
+                pub.put(key("drillnav", "fluoro_shot"), s)
+            if registering.wait(3):
+                break
+        assert registering.is_set(), _why(node)
+        assert len(node.shots) >= 1 and node.status().views == (), _why(node)  # held, not yet registered: not named
+        assert wait_for(lambda: len(node.status().views) == len(shots), 30), _why(node)
+        node.take_frame(image, stamp)
+        assert wait_for(lambda: any(a["source_frame_stamp_ns"] == stamp for a in list(axes)), 10), _why(node)
+
+
+def test_an_intensifier_views_distortion_rides_on_every_axis():
+    """Shots from an image intensifier (the twin's ``ii_distortion``: the views say so): the joint solve estimates
+    each view's distortion, and every axis carries it by view name, the first frame's (joint-solved) and the
+    frames tracked on its refinement alike, so a display draws the axis where that intensifier shows it."""
+    from drillnav.drivers.sim.degradations import Degradations
+    from drillnav.drivers.sim.scene import render_fluoro
+
+    scene = make_scene(seed=23, render=False, degradations=Degradations(ii_distortion=True))
+    rng = np.random.default_rng(23)
+    assert all(v.distortion_sigma_px > 0 for v in scene.views.values())
+    shots = [msg.FluoroShot.build(render_fluoro(scene, name, rng), view, stamp_ns=time.time_ns(), view_name=name).to_bytes()
+             for name, view in scene.views.items()]
+    carm_from_drill = scene.drill_pose_towards(rng)
+    image = scene.render_camera(rng, carm_from_drill=carm_from_drill)
+    with node_and_axes(scene) as (pub, node, axes):
+        register_both_views(pub, "drillnav", node, shots)
+        stamp0 = time.time_ns()
+        for n in range(3):  # 33 ms apart in capture time: the first joint-solved, the others tracked on its refinement
+            node.take_frame(image, stamp0 + n * 33_000_000)
+            assert wait_for(lambda s=stamp0 + n * 33_000_000: any(a["source_frame_stamp_ns"] == s for a in list(axes)), 20), _why(node)
+    first, *tracked = [next(a for a in axes if a["source_frame_stamp_ns"] == stamp0 + n * 33_000_000) for n in range(3)]
+    assert set(first["detector_distortion_px"]) == set(scene.views), first["detector_distortion_px"]
+    for a in tracked:
+        assert a["detector_distortion_px"] == first["detector_distortion_px"]
+    # The estimate is the intensifier's: the twin's pincushion at the field's corner (8 px; seeded: 8.1 and 8.4 px).
+    pincushion = np.array([k[0] for k in first["detector_distortion_px"].values()])
+    assert np.all(np.abs(pincushion - scene.degradations.ii_pincushion_px) < 3.0), first["detector_distortion_px"]

@@ -67,6 +67,49 @@ function clipLineToImage(P, point, dir, cols, rows) {
   return best;
 }
 
+// An image intensifier bends the image: the registration's estimate of a view's distortion k = [pincushion, S], the
+// shift at the field's corner (px), moves an ideal pixel as registration/carm.py's intensifier_shift_px does.
+const CURVE_POINTS = 65;
+function distort(v, uv, k) {
+  if (!k || !uv) return uv;
+  const cx = (v.columns - 1) / 2, cy = (v.rows - 1) / 2, R = Math.hypot(cx, cy);
+  const dx = uv[0] - cx, dy = uv[1] - cy, r2 = (dx * dx + dy * dy) / (R * R * R);
+  return [uv[0] + (k[0] * dx - k[1] * dy) * r2, uv[1] + (k[0] * dy + k[1] * dx) * r2];
+}
+function projectV(v, X, k) { return distort(v, project(v.P, X), k); }
+function bent(v, a, b, k, n = 17) {  // the image of the 3-D segment a-b: n points, bent by the view's distortion
+  return Array.from({ length: n }, (_, i) => projectV(v, add(a, mul(sub(b, a), i / (n - 1))), k)).filter((q) => q);
+}
+
+// The axis's image bent by an intensifier (registration/overlay.py axis_curve_px): the ideal line a little past the
+// border either side, CURVE_POINTS points, distorted, then cut at the border.
+function axisCurve(v, point, dir, k) {
+  const a = project(v.P, point), b = project(v.P, add(point, mul(dir, 100)));
+  if (!a || !b) return null;
+  const L = Math.hypot(b[0] - a[0], b[1] - a[1]), u = [(b[0] - a[0]) / L, (b[1] - a[1]) / L];
+  const cx = (v.columns - 1) / 2, cy = (v.rows - 1) / 2, t0 = (cx - a[0]) * u[0] + (cy - a[1]) * u[1];
+  const mid = [a[0] + t0 * u[0], a[1] + t0 * u[1]], reach = 1.2 * Math.hypot(cx, cy);
+  const pts = Array.from({ length: CURVE_POINTS }, (_, i) => { const t = -reach + (2 * reach * i) / (CURVE_POINTS - 1); return distort(v, [mid[0] + t * u[0], mid[1] + t * u[1]], k); });
+  const lo = -0.5, hx = v.columns - 0.5, hy = v.rows - 0.5;
+  const inside = (q) => q[0] >= lo && q[0] <= hx && q[1] >= lo && q[1] <= hy;
+  const i = pts.findIndex(inside);
+  if (i < 0) return null;
+  let j = pts.length - 1; while (!inside(pts[j])) j--;
+  const cut = (p, q) => {  // p outside, q inside: where p-q crosses the border
+    let t = 0;
+    for (const [c, h] of [[0, hx], [1, hy]]) {
+      if (p[c] < lo) t = Math.max(t, (lo - p[c]) / (q[c] - p[c]));
+      if (p[c] > h) t = Math.max(t, (h - p[c]) / (q[c] - p[c]));
+    }
+    t = Math.min(1, t);
+    return [p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])];
+  };
+  const curve = pts.slice(i, j + 1);
+  if (i > 0) curve.unshift(cut(pts[i - 1], pts[i]));
+  if (j < pts.length - 1) curve.push(cut(pts[j + 1], pts[j]));
+  return curve;
+}
+
 // ---- WebSocket -------------------------------------------------------------------------------------------
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
@@ -162,7 +205,7 @@ function addView(m) {
   document.getElementById("no-views").hidden = true;
   const pj = m.projection;
   // Until its image has loaded (and sized the canvases), a view shows nothing: no axis on a stale geometry.
-  Object.assign(v, { ready: false, drawn: null, stamp_ns: m.stamp_ns, P: pj.projection_matrix, rows: pj.rows, columns: pj.columns, source: sourceOf(pj.projection_matrix) });
+  Object.assign(v, { name: m.name, ready: false, drawn: null, stamp_ns: m.stamp_ns, P: pj.projection_matrix, rows: pj.rows, columns: pj.columns, source: sourceOf(pj.projection_matrix) });
   v.cap.querySelector(".name").textContent = m.name;
   const img = new Image();
   img.onload = () => {
@@ -188,7 +231,8 @@ function drawView(v, axis, stale) {
   const ctx = v.overlay.getContext("2d"), W = v.columns, H = v.rows;
   ctx.clearRect(0, 0, W, H);
   const lw = Math.max(3, W / 220);  // ~4-5 px on a 976 px view shown ~500 px wide: visible across the room
-  const P = v.P;
+  // The view's intensifier distortion as the axis's registration estimated it (none for a flat panel).
+  const k = (axis && axis.detector_distortion_px && axis.detector_distortion_px[v.name]) || null;
   // Planned trajectories and corridors.
   for (const t of planInCarm()) {
     const d = unit(sub(t.target, t.entry));
@@ -196,11 +240,11 @@ function drawView(v, axis, stale) {
     const side = unit(cross(d, unit(sub(mid, v.source))));
     ctx.strokeStyle = COLOURS.plan; ctx.lineWidth = lw * 0.6; ctx.setLineDash([]);
     for (const s of [-1, 1]) {
-      const a = project(P, add(t.entry, mul(side, s * t.radius))), b = project(P, add(t.target, mul(side, s * t.radius)));
-      if (a && b) { polyline(ctx, [a, b]); ctx.stroke(); }
+      const edge = bent(v, add(t.entry, mul(side, s * t.radius)), add(t.target, mul(side, s * t.radius)), k);
+      if (edge.length > 1) { polyline(ctx, edge); ctx.stroke(); }
     }
-    const a = project(P, t.entry), b = project(P, t.target);
-    if (a && b) { ctx.setLineDash([lw * 3, lw * 2]); ctx.lineWidth = lw; polyline(ctx, [a, b]); ctx.stroke(); ctx.setLineDash([]); }
+    const centre = bent(v, t.entry, t.target, k), a = projectV(v, t.entry, k);
+    if (centre.length > 1) { ctx.setLineDash([lw * 3, lw * 2]); ctx.lineWidth = lw; polyline(ctx, centre); ctx.stroke(); ctx.setLineDash([]); }
     if (a) { ctx.beginPath(); ctx.arc(a[0] + 0.5, a[1] + 0.5, lw * 2.5, 0, 2 * Math.PI); ctx.stroke(); }
   }
   if (!axis) { v.drawn = null; return; }
@@ -213,7 +257,7 @@ function drawView(v, axis, stale) {
     const c = add(p, mul(dir, s));
     const side = unit(cross(dir, unit(sub(c, v.source))));
     const r = pe.position_mm + Math.abs(s) * tanA;
-    const a = project(P, add(c, mul(side, r))), b = project(P, add(c, mul(side, -r)));
+    const a = projectV(v, add(c, mul(side, r)), k), b = projectV(v, add(c, mul(side, -r)), k);
     if (a && b) { upper.push(a); lower.push(b); }
   }
   if (upper.length > 1) {
@@ -223,18 +267,20 @@ function drawView(v, axis, stale) {
     polyline(ctx, upper); ctx.stroke(); polyline(ctx, lower.reverse()); ctx.stroke();
   }
   // The axis across the whole image, outlined in black so it reads on bone and on air alike.
-  const seg = clipLineToImage(P, p, dir, W, H);
+  const curve = k ? axisCurve(v, p, dir, k) : clipLineToImage(v.P, p, dir, W, H);
+  const seg = curve && curve.length > 1 ? [curve[0], curve[curve.length - 1]] : null;
   if (seg) {
     ctx.setLineDash(stale ? [lw * 4, lw * 3] : []);
-    ctx.strokeStyle = "#000"; ctx.lineWidth = lw * 2; polyline(ctx, seg); ctx.stroke();
-    ctx.strokeStyle = col; ctx.lineWidth = lw; polyline(ctx, seg); ctx.stroke();
+    ctx.strokeStyle = "#000"; ctx.lineWidth = lw * 2; polyline(ctx, curve); ctx.stroke();
+    ctx.strokeStyle = col; ctx.lineWidth = lw; polyline(ctx, curve); ctx.stroke();
     ctx.setLineDash([]);
-    // Arrowhead at the far end: the way the drill advances.
-    const [a, b] = seg, L = Math.hypot(b[0] - a[0], b[1] - a[1]), ux = (b[0] - a[0]) / L, uy = (b[1] - a[1]) / L, k = lw * 6;
-    const tip = [a[0] + ux * (L - 4 * lw), a[1] + uy * (L - 4 * lw)];
+    // Arrowhead at the far end: the way the drill advances (along the curve's last piece).
+    const a = curve[curve.length - 2], b = curve[curve.length - 1], L = Math.hypot(b[0] - a[0], b[1] - a[1]) || 1;
+    const ux = (b[0] - a[0]) / L, uy = (b[1] - a[1]) / L, h = lw * 6;
+    const tip = [b[0] - ux * 4 * lw, b[1] - uy * 4 * lw];
     ctx.fillStyle = col; ctx.beginPath(); ctx.moveTo(tip[0] + 0.5, tip[1] + 0.5);
-    ctx.lineTo(tip[0] - ux * k - uy * k * 0.5 + 0.5, tip[1] - uy * k + ux * k * 0.5 + 0.5);
-    ctx.lineTo(tip[0] - ux * k + uy * k * 0.5 + 0.5, tip[1] - uy * k - ux * k * 0.5 + 0.5); ctx.closePath(); ctx.fill();
+    ctx.lineTo(tip[0] - ux * h - uy * h * 0.5 + 0.5, tip[1] - uy * h + ux * h * 0.5 + 0.5);
+    ctx.lineTo(tip[0] - ux * h + uy * h * 0.5 + 0.5, tip[1] - uy * h - ux * h * 0.5 + 0.5); ctx.closePath(); ctx.fill();
   }
   // Entry: where the axis passes the planned entry (nearest point), else the working point.
   const plans = planInCarm();
@@ -243,12 +289,12 @@ function drawView(v, axis, stale) {
     const t = plans.reduce((best, t) => (norm(cross(sub(t.entry, p), dir)) < norm(cross(sub(best.entry, p), dir)) ? t : best));
     entry = add(p, mul(dir, dot(sub(t.entry, p), dir)));
   }
-  const e = project(P, entry);
+  const e = projectV(v, entry, k);
   if (e) {
     ctx.lineWidth = lw; ctx.strokeStyle = "#000"; ctx.fillStyle = stale ? COLOURS.stale : COLOURS.entry;
     ctx.beginPath(); ctx.arc(e[0] + 0.5, e[1] + 0.5, lw * 2, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
   }
-  v.drawn = { source_frame_stamp_ns: axis.source_frame_stamp_ns, segment: seg, entry_px: e, stale };
+  v.drawn = { source_frame_stamp_ns: axis.source_frame_stamp_ns, segment: seg, curve, distortion_px: k, entry_px: e, stale };
 }
 
 // ---- video-CT: the volume once, resliced here ------------------------------------------------------------
