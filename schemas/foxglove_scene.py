@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.carm import CArmView
+from drillnav.registration.carm import CArmView, intensifier_shift_px
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
 
@@ -69,6 +69,7 @@ _MARKER_COLOUR = (0.2, 0.6, 1.0, 1.0)
 _LOG_LEVELS = {"debug": Log.DEBUG, "info": Log.INFO, "warning": Log.WARNING, "error": Log.ERROR, "fatal": Log.FATAL}
 # The axis as drawn: from this far behind its working point (the drill side) to this far beyond it, mm.
 AXIS_BEHIND_MM, AXIS_AHEAD_MM = 150.0, 80.0
+STRIP_POINTS = 33  # a line on an intensifier view, drawn bent: points per strip (230 mm of axis, one every 7 mm)
 
 
 def view_frame(view_name: str) -> str:
@@ -198,12 +199,24 @@ def _points(pixels: NDArray[np.float64], kind: int, rgba: Sequence[float], stamp
 
 
 def view_annotations(view: CArmView, *, stamp_ns: int, axis_carm: Line3D | None = None, cone_half_angle_deg: float = 0.0,
-                     markers_carm_mm: Mapping[int, ArrayLike] | None = None) -> ImageAnnotations:
-    """What the overlay used to burn into a view, as annotations: the axis (and its cone's edges) and the markers, projected by P."""
+                     markers_carm_mm: Mapping[int, ArrayLike] | None = None, distortion_px: ArrayLike | None = None) -> ImageAnnotations:
+    """What the overlay used to burn into a view, as annotations: the axis (and its cone's edges) and the markers, projected by P.
+
+    ``distortion_px`` (2,): the view's image-intensifier distortion as the registration estimated it (pincushion and
+    S shift at the field's corner, px; ``DrillAxis.detector_distortion_px``): everything is placed where that
+    intensifier shows it, the lines as strips of :data:`STRIP_POINTS` points (the image of a line is then bent).
+    """
+    k = None if distortion_px is None else np.asarray(distortion_px, dtype=np.float64).reshape(2)
+
+    def image(points_carm_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        uv = view.project(points_carm_mm)
+        return uv if k is None else uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, k)
+
+    n = 2 if k is None else STRIP_POINTS
     out = ImageAnnotations()
     if axis_carm is not None:
-        s = np.linspace(-AXIS_BEHIND_MM, AXIS_AHEAD_MM, 2)
-        out.points.append(_points(view.project(axis_carm.at(s)), PointsAnnotation.LINE_STRIP, _AXIS_COLOUR, stamp_ns))
+        s = np.linspace(-AXIS_BEHIND_MM, AXIS_AHEAD_MM, n)
+        out.points.append(_points(image(axis_carm.at(s)), PointsAnnotation.LINE_STRIP, _AXIS_COLOUR, stamp_ns))
         if cone_half_angle_deg > 0:
             apex, far = axis_carm.at(-AXIS_BEHIND_MM).reshape(3), AXIS_BEHIND_MM + AXIS_AHEAD_MM
             # The cone's edges in this image: rotate the axis by the half-angle about the view's depth direction.
@@ -212,9 +225,10 @@ def view_annotations(view: CArmView, *, stamp_ns: int, axis_carm: Line3D | None 
             normal /= np.linalg.norm(normal)
             for sign in (-1.0, 1.0):
                 edge = Rotation.from_rotvec(sign * np.radians(cone_half_angle_deg) * normal).apply(axis_carm.direction)
-                out.points.append(_points(view.project(np.stack([apex, apex + far * edge])), PointsAnnotation.LINE_STRIP, _CONE_COLOUR[:3] + (1.0,), stamp_ns, 1.0))
+                out.points.append(_points(image(apex + np.linspace(0.0, far, n)[:, None] * edge), PointsAnnotation.LINE_STRIP, _CONE_COLOUR[:3] + (1.0,),
+                                          stamp_ns, 1.0))
     for marker_id, p in sorted((markers_carm_mm or {}).items()):
-        uv = view.project(np.asarray(p, float).reshape(1, 3))[0]
+        uv = image(np.asarray(p, float).reshape(1, 3))[0]
         circle = _points(uv.reshape(1, 2), PointsAnnotation.POINTS, _MARKER_COLOUR, stamp_ns, 8.0)
         out.points.append(circle)
         text = TextAnnotation(text=f"m{marker_id}", font_size=14.0, text_color=_colour(_MARKER_COLOUR), background_color=_colour((0, 0, 0, 0.5)))

@@ -131,7 +131,8 @@ class ScenePublisher:
         with self._lock:
             views, markers = dict(self._views), dict(self._markers)
         for name, view in views.items():
-            ann = fox.view_annotations(view, stamp_ns=stamp, axis_carm=axis, cone_half_angle_deg=float(err["angle_deg"]), markers_carm_mm=markers)
+            ann = fox.view_annotations(view, stamp_ns=stamp, axis_carm=axis, cone_half_angle_deg=float(err["angle_deg"]), markers_carm_mm=markers,
+                                       distortion_px=(doc.get("detector_distortion_px") or {}).get(name))
             self._put(key(p, "scene_annotations", name), ann.SerializeToString())
 
     def _on_axis_ct(self, data: bytes) -> None:

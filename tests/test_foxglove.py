@@ -89,6 +89,29 @@ def test_converter_checks_and_units():
     assert scene.entities[0].timestamp.seconds == 5 and scene.entities[0].timestamp.nanos == 123
 
 
+def test_an_intensifier_views_annotations_lie_where_it_shows_the_axis():
+    """With the view's estimated distortion (DrillAxis.detector_distortion_px) the axis strip and the markers are
+    placed on the distorted image, not the ideal projection; a flat panel's are the projection itself."""
+    from drillnav.registration.carm import intensifier_shift_px
+
+    view = CArmView.from_positioner(primary_deg=20, secondary_deg=-10, source_to_detector_mm=1164, source_to_isocenter_mm=624,
+                                    pixel_spacing_mm=(0.304, 0.304), rows=976, columns=976)
+    axis = Line3D(point_mm=[40.0, -35.0, 8.0], direction=[0.6, 0.3, 0.74])
+    k = np.array([8.0, 3.0])
+    marker = np.array([[60.0, 50.0, 10.0]])
+    flat = fox.view_annotations(view, stamp_ns=1, axis_carm=axis, markers_carm_mm={3: marker[0]})
+    bent = fox.view_annotations(view, stamp_ns=1, axis_carm=axis, markers_carm_mm={3: marker[0]}, distortion_px=k)
+    ideal = view.project(axis.at(np.linspace(-fox.AXIS_BEHIND_MM, fox.AXIS_AHEAD_MM, fox.STRIP_POINTS)))
+    strip = np.array([[p.x, p.y] for p in bent.points[0].points])
+    assert np.allclose(strip, ideal + intensifier_shift_px(ideal, view.center_px, view.corner_radius_px, k), atol=1e-9)
+    assert np.abs(strip - ideal).max() > 1.0  # moved: this axis runs out towards the field's edge
+    assert np.allclose([[p.x, p.y] for p in flat.points[0].points], ideal[[0, -1]], atol=1e-9)
+    uv = view.project(marker)
+    for ann, want in ((flat, uv), (bent, uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, k))):
+        dot = ann.points[-1].points[0]
+        assert np.allclose([dot.x, dot.y], want[0], atol=1e-9)
+
+
 class FoxgloveWsClient:
     """Subscribes to every channel it is told about and keeps (topic, schema name, payload) of each message."""
 
