@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from .axis_uncertainty import AxisUncertainty
 from .camera import PinholeCamera
 from .errors import MarkersNotFound
 from .line import Line3D
@@ -60,11 +61,12 @@ class LiveCalibration:
     camera: PinholeCamera
     axis_drill: Line3D
     locator: VideoMarkerLocator
+    axis_uncertainty: AxisUncertainty = AxisUncertainty()  # drill.json's stated uncertainty of axis_drill (the predicted error's)
 
     @classmethod
-    def build(cls, *, camera: PinholeCamera, axis_drill: Line3D, marker_set: MarkerSet) -> LiveCalibration:
+    def build(cls, *, camera: PinholeCamera, axis_drill: Line3D, marker_set: MarkerSet, axis_uncertainty: AxisUncertainty | None = None) -> LiveCalibration:
         locator = VideoMarkerLocator(camera=camera, marker_set=marker_set)  # each marker's own dictionary, tag size and offset
-        return cls(camera=camera, axis_drill=axis_drill, locator=locator)
+        return cls(camera=camera, axis_drill=axis_drill, locator=locator, axis_uncertainty=axis_uncertainty or AxisUncertainty())
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -240,7 +242,8 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
     work = axis.closest_point(centroid)
-    pe = predicted_axis_error(video, poses, reg, calibration.axis_drill, working_point_carm_mm=work,
-                              position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg)  # vectorised: ~1 ms
+    u = calibration.axis_uncertainty
+    pe = predicted_axis_error(video, poses, reg, calibration.axis_drill, working_point_carm_mm=work, axis_sigma_mm=u.sigma_mm,
+                              axis_sigma_deg=u.per_direction_deg, position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg)  # vectorised: ~1 ms
     return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
                      refinement=refinement)

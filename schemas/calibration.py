@@ -10,6 +10,7 @@ from typing import Any
 import jsonschema
 import numpy as np
 
+from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.line import Line3D
 
@@ -25,6 +26,8 @@ __all__ = [
     "read_camera_calibration",
     "write_drill_calibration",
     "read_drill_calibration",
+    "read_drill_uncertainty",
+    "drill_uncertainty_from_json",
     "drill_calibration_to_json",
     "drill_calibration_from_json",
 ]
@@ -103,6 +106,12 @@ def drill_calibration_from_json(doc: Any, *, source: str = "drill calibration") 
     return axis_from_json(doc["axis_camera"], name=f"{source}: axis_camera")
 
 
+def drill_uncertainty_from_json(doc: Any, *, source: str = "drill calibration") -> AxisUncertainty:
+    """The axis's calibration uncertainty the document states (``residual_mm``, ``residual_deg``; absent or 0: the defaults)."""
+    _validate(doc, DRILL_SCHEMA, source)
+    return AxisUncertainty.from_residuals(residual_mm=doc.get("residual_mm"), residual_deg=doc.get("residual_deg"))
+
+
 def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: str, residual_mm: float, residual_deg: float, label: str) -> None:
     doc = drill_calibration_to_json(axis_camera, method=method, residual_mm=residual_mm, residual_deg=residual_deg, label=label)
     Path(path).write_text(json.dumps(doc, indent=1))
@@ -110,3 +119,7 @@ def write_drill_calibration(path: str | Path, axis_camera: Line3D, *, method: st
 
 def read_drill_calibration(path: str | Path) -> Line3D:
     return drill_calibration_from_json(_read_json(path), source=str(path))
+
+
+def read_drill_uncertainty(path: str | Path) -> AxisUncertainty:
+    return drill_uncertainty_from_json(_read_json(path), source=str(path))

@@ -37,7 +37,7 @@ def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None, pl
     from drillnav.drivers.sim.ct_anatomy import handed_copy
     from drillnav.drivers.sim.ct_phantom import make_pelvis_ct
     from drillnav.drivers.sim.dicom_io import write_ct_series, write_xa
-    from drillnav.drivers.sim.scene import PAPER_CARM
+    from drillnav.drivers.sim.scene import AXIS_CALIBRATION_UNCERTAINTY, PAPER_CARM
     from drillnav.schemas.calibration import write_camera_calibration, write_drill_calibration
     from drillnav.schemas.markers import write_marker_set
     from drillnav.schemas.projection import write_projection
@@ -64,7 +64,8 @@ def write_scene(scene: Scene, out: Path, *, ct_voxel_mm: float | None = None, pl
                  image_intensifier=scene.degradations.ii_distortion)
         write_projection(out / "fluoro" / f"{name}.json", view)
     write_camera_calibration(out / "camera.json", scene.calibrated_camera, rms_px=0.21, per_view_errors_px=[], label=f"twin seed {scene.seed}")
-    write_drill_calibration(out / "drill.json", scene.calibrated_axis_drill, method="twin (true axis with calibration error)", residual_mm=0.1, residual_deg=0.12, label=f"twin seed {scene.seed}")
+    write_drill_calibration(out / "drill.json", scene.calibrated_axis_drill, method="twin (true axis with calibration error)", residual_mm=AXIS_CALIBRATION_UNCERTAINTY.sigma_mm,
+                            residual_deg=AXIS_CALIBRATION_UNCERTAINTY.rms_tilt_deg, label=f"twin seed {scene.seed}")
     write_marker_set(out / "markers.json", scene.marker_set)
     if plan_doc is None:
         plan_doc = plan_to_json((patient.corridor,) if patient is not None else anatomy.CORRIDORS)

@@ -53,7 +53,7 @@ def register(subparsers) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+    from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration, read_drill_uncertainty
     from drillnav.schemas.markers import read_marker_set
     from .bus import open_session
 
@@ -67,7 +67,8 @@ def _replay(args: argparse.Namespace) -> int:
             node = replay_node(args.file, session=session, prefix=args.prefix,
                                marker_set=read_marker_set(args.markers) if args.markers else None,
                                camera=read_camera_calibration(args.camera) if args.camera else None,
-                               axis_drill=read_drill_calibration(args.drill) if args.drill else None)
+                               axis_drill=read_drill_calibration(args.drill) if args.drill else None,
+                               axis_uncertainty=read_drill_uncertainty(args.drill) if args.drill else None)
         try:
             time.sleep(args.wait)  # let subscribers connect before the first message
             result = replay(args.file, session, rate=args.rate, state_settle_s=args.settle)

@@ -37,7 +37,7 @@ from drillnav.registration.errors import DrillnavError
 from drillnav.registration.markers import default_marker_set
 from drillnav.registration.overlay import to_display
 from drillnav.schemas import messages as msg
-from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration, read_drill_uncertainty
 from drillnav.schemas.markers import read_marker_set
 from drillnav.schemas.topics import TOPICS, key
 
@@ -186,7 +186,7 @@ class Daemon:
         s = self.settings
         if s.twin:
             from drillnav.drivers.sim.devices import TwinCArm, TwinDrillCamera
-            from drillnav.drivers.sim.scene import make_scene
+            from drillnav.drivers.sim.scene import AXIS_CALIBRATION_UNCERTAINTY, make_scene
 
             self.progress("building the digital twin ...")
             scene = make_scene(seed=s.twin_scene.seed, n_markers=s.twin_scene.markers, views=s.twin_scene.views, render=False)
@@ -197,7 +197,7 @@ class Daemon:
             send_to = (s.dicom.scp_host, s.dicom.scp_port, s.dicom.ae_title) if s.dicom.scp_enabled else None
             self.carm = TwinCArm(scene=scene, folder=s.dicom.watch_folder / ".twin", seed=s.twin_scene.seed, send_to=send_to)
             self.progress("digital twin up")
-            return marker_set, {"camera": scene.calibrated_camera, "axis_drill": scene.calibrated_axis_drill}
+            return marker_set, {"camera": scene.calibrated_camera, "axis_drill": scene.calibrated_axis_drill, "axis_uncertainty": AXIS_CALIBRATION_UNCERTAINTY}
         from drillnav.drivers.webcam import Webcam
 
         device = s.camera.device
@@ -209,10 +209,11 @@ class Daemon:
             drill_path = s.camera.drill_calibration or self._active_calibration("drill")
             camera = read_camera_calibration(cam_path) if cam_path is not None else None
             axis = read_drill_calibration(drill_path) if drill_path is not None else None
+            uncertainty = read_drill_uncertainty(drill_path) if drill_path is not None else None
         except (OSError, ValueError, DrillnavError) as exc:
             raise StartupError(f"calibration: {exc}") from None
         self.camera_device = Webcam(device=device, width=s.camera.width, height=s.camera.height, fps=s.camera.fps, fourcc=s.camera.fourcc, exposure=s.camera.exposure)
-        return marker_set, {"camera": camera, "axis_drill": axis}
+        return marker_set, {"camera": camera, "axis_drill": axis, "axis_uncertainty": uncertainty}
 
     def _active_calibration(self, kind: str) -> Path | None:
         """An installed calibration in ``calibration.folder`` (what a calibration job installed), if any."""
@@ -381,7 +382,7 @@ class Daemon:
         if kind == "camera":
             bundle = self.node.install_calibration(camera=read_camera_calibration(path))
         else:
-            bundle = self.node.install_calibration(axis_drill=read_drill_calibration(path))
+            bundle = self.node.install_calibration(axis_drill=read_drill_calibration(path), axis_uncertainty=read_drill_uncertainty(path))
         self._event("info", f"{kind} calibration installed from {path}" + ("" if bundle is not None else "; still uncalibrated: the other calibration is missing"))
         if bundle is None:
             return
@@ -400,7 +401,7 @@ class Daemon:
             return
         s, cal = self.settings, self.settings.calibration.folder
         self.session.put(key(self.prefix, "calibration"), active_calibration_message(
-            camera=bundle.camera, axis_drill=bundle.axis_drill, marker_set=self.node.marker_set, stamp_ns=time.time_ns(),
+            camera=bundle.camera, axis_drill=bundle.axis_drill, axis_uncertainty=bundle.axis_uncertainty, marker_set=self.node.marker_set, stamp_ns=time.time_ns(),
             camera_file=None if s.twin else s.camera.calibration or cal / "camera.json",
             drill_file=None if s.twin else s.camera.drill_calibration or cal / "drill.json"))
 

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
+from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
@@ -95,16 +96,17 @@ class RegistrationNode:
     """
 
     def __init__(self, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet, calibration: LiveCalibration | None = None,
-                 camera: PinholeCamera | None = None, axis_drill: Line3D | None = None, max_views: int = 2,
+                 camera: PinholeCamera | None = None, axis_drill: Line3D | None = None, axis_uncertainty: AxisUncertainty | None = None, max_views: int = 2,
                  overlay_period_s: float = 0.5, ct_tracker=None, stall_s: float = 1.0, supervise_s: float = 0.25,
                  reliable_limits: ReliableLimits = ReliableLimits(), camera_on_bus: bool = True) -> None:
         """``camera_on_bus=False``: the camera is in this process and hands its frames to :meth:`take_frame`
-        (the daemon); True: frames come from the camera key on the bus (a camera elsewhere, a replay)."""
+        (the daemon); True: frames come from the camera key on the bus (a camera elsewhere, a replay).
+        ``axis_uncertainty``: drill.json's stated uncertainty of ``axis_drill`` (None: the defaults)."""
         self.camera_on_bus = camera_on_bus
         if calibration is None and camera is not None and axis_drill is not None:
-            calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set)
+            calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set, axis_uncertainty=axis_uncertainty)
         # One of the two alone waits for the other (install_calibration).
-        self._half_calibration: dict = {} if calibration is not None else {"camera": camera, "axis_drill": axis_drill}
+        self._half_calibration: dict = {} if calibration is not None else {"camera": camera, "axis_drill": axis_drill, "axis_uncertainty": axis_uncertainty}
         self.session, self.prefix = session, prefix
         self.ct_tracker = ct_tracker
         self.marker_set = marker_set
@@ -251,22 +253,30 @@ class RegistrationNode:
             self._shots_in.append(None)
             self._wake.notify_all()
 
-    def install_calibration(self, *, camera: PinholeCamera | None = None, axis_drill: Line3D | None = None) -> LiveCalibration | None:
+    def install_calibration(self, *, camera: PinholeCamera | None = None, axis_drill: Line3D | None = None,
+                            axis_uncertainty: AxisUncertainty | None = None) -> LiveCalibration | None:
         """Replace the camera and/or drill calibration; the locator is rebuilt with the camera, all in one new bundle.
 
-        With only one of the two and no calibration yet, it is kept until the other comes.
+        With only one of the two and no calibration yet, it is kept until the other comes. ``axis_uncertainty``
+        goes with ``axis_drill`` (drill.json's stated uncertainty; None: the defaults).
         """
         current = self.calibration
         pending = self._half_calibration
         cam = camera if camera is not None else (current.camera if current is not None else pending.get("camera"))
-        axis = axis_drill if axis_drill is not None else (current.axis_drill if current is not None else pending.get("axis_drill"))
+        if axis_drill is not None:
+            axis, unc = axis_drill, axis_uncertainty
+        elif current is not None:
+            axis, unc = current.axis_drill, current.axis_uncertainty
+        else:
+            axis, unc = pending.get("axis_drill"), pending.get("axis_uncertainty")
         if cam is None or axis is None:
-            self._half_calibration = {"camera": cam, "axis_drill": axis}
+            self._half_calibration = {"camera": cam, "axis_drill": axis, "axis_uncertainty": unc}
             return None
         if current is not None and camera is None:
-            bundle = LiveCalibration(camera=current.camera, axis_drill=axis, locator=current.locator)  # same camera: same locator
+            bundle = LiveCalibration(camera=current.camera, axis_drill=axis, locator=current.locator,  # same camera: same locator
+                                     axis_uncertainty=unc or AxisUncertainty())
         else:
-            bundle = LiveCalibration.build(camera=cam, axis_drill=axis, marker_set=self.marker_set)
+            bundle = LiveCalibration.build(camera=cam, axis_drill=axis, marker_set=self.marker_set, axis_uncertainty=unc)
         self.calibration = bundle  # one reference: a frame sees the old bundle or the new, never a mix
         self._half_calibration = {}
         return bundle

@@ -18,7 +18,7 @@ from drillnav.registration.fluoro_markers import detect_markers, magnification_r
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.overlay import annotate, draw_axis, draw_detections, mask_markers, to_display
 from drillnav.registration.pipeline import LiveCalibration, track_frame
-from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration
+from drillnav.schemas.calibration import read_camera_calibration, read_drill_calibration, read_drill_uncertainty
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.markers import read_marker_set
 
@@ -39,7 +39,7 @@ def run_registration(args: argparse.Namespace) -> dict:
     images = [img for f in args.fluoro for img in read_fluoro(f)]
     timings["read_s"] = time.perf_counter() - t
 
-    calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set)
+    calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set, axis_uncertainty=read_drill_uncertainty(args.drill))
     # The frame is tracked below by the node's own pipeline; looking for markers first gives the clear error before the fluoroscopy work.
     t = time.perf_counter()
     if not calibration.locator.locate(frame).markers:

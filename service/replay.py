@@ -24,6 +24,7 @@ from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 
+from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.line import Line3D
@@ -117,9 +118,10 @@ def read_calibration(path: str | Path) -> ActiveCalibration:
 
 
 def replay_node(path: str | Path, *, session: zenoh.Session, prefix: str, marker_set: MarkerSet | None = None,
-                camera: PinholeCamera | None = None, axis_drill: Line3D | None = None):
+                camera: PinholeCamera | None = None, axis_drill: Line3D | None = None, axis_uncertainty: AxisUncertainty | None = None):
     """A :class:`~drillnav.service.node.RegistrationNode` for replaying ``path``: what is not given comes from the
-    file's calibration message (the marker set from it too, else the default design)."""
+    file's calibration message (the marker set from it too, else the default design; the drill axis's stated
+    uncertainty with the file's axis)."""
     from .node import RegistrationNode
 
     if camera is None or axis_drill is None or marker_set is None:
@@ -132,10 +134,12 @@ def replay_node(path: str | Path, *, session: zenoh.Session, prefix: str, marker
             cal = None
         if cal is not None:
             camera = camera if camera is not None else cal.camera
-            axis_drill = axis_drill if axis_drill is not None else cal.axis_drill
+            if axis_drill is None:
+                axis_drill, axis_uncertainty = cal.axis_drill, cal.axis_uncertainty
             marker_set = marker_set if marker_set is not None else cal.marker_set
     # Entered (its workers running); the caller closes it.
-    return RegistrationNode(session=session, prefix=prefix, marker_set=marker_set or default_marker_set(), camera=camera, axis_drill=axis_drill).__enter__()
+    return RegistrationNode(session=session, prefix=prefix, marker_set=marker_set or default_marker_set(), camera=camera, axis_drill=axis_drill,
+                            axis_uncertainty=axis_uncertainty).__enter__()
 
 
 def replay(path: str | Path, session: zenoh.Session, *, rate: float = 1.0, stop: threading.Event | None = None, state_settle_s: float = 0.0) -> ReplayResult:

@@ -48,6 +48,26 @@ def test_register_two_views_against_truth(scene_dir, tmp_path):
     assert all(m["fre_mm"] < 3 for m in r["markers"])
 
 
+def test_the_drill_calibrations_stated_uncertainty_sets_the_bound(scene_dir, tmp_path):
+    """drill.json's residuals are the axis's calibration uncertainty the predicted error carries: the same
+    registration with a drill calibration stated 5 times worse predicts a larger error (the calibration part
+    dominates at the entry, 290 mm from the camera); stated 0 (unknown), the defaults (the twin's own 0.1 mm / 0.12 deg)."""
+    fluoro = (scene_dir / "fluoro/inlet.dcm", scene_dir / "fluoro/outlet.dcm")
+    doc = json.loads((scene_dir / "drill.json").read_text())
+    assert (doc["residual_mm"], doc["residual_deg"]) == (0.1, 0.12)
+    got = {}
+    for name, mm, deg in (("stated", 0.1, 0.12), ("worse", 0.5, 0.6), ("unknown", 0.0, 0.0)):
+        d = tmp_path / name
+        shutil.copytree(scene_dir, d, ignore=shutil.ignore_patterns("*.dcm"))
+        (d / "drill.json").write_text(json.dumps({**doc, "residual_mm": mm, "residual_deg": deg}))
+        assert main(args(d, *fluoro, out=d / "r.json")) == 0
+        got[name] = json.loads((d / "r.json").read_text())
+    pe = {k: (r["predicted_error"]["position_mm"], r["predicted_error"]["angle_deg"]) for k, r in got.items()}
+    assert got["worse"]["drill_axis_carm"] == got["stated"]["drill_axis_carm"]  # the registration itself is the same
+    assert pe["worse"][0] > 2.5 * pe["stated"][0] and pe["worse"][1] > 2.5 * pe["stated"][1], pe
+    assert pe["unknown"] == pe["stated"], pe
+
+
 def test_geometry_from_positioner_when_json_absent(scene_dir, tmp_path):
     shutil.copy(scene_dir / "fluoro/inlet.dcm", tmp_path / "a.dcm")
     (img,) = read_fluoro(tmp_path / "a.dcm")

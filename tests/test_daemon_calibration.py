@@ -42,7 +42,7 @@ def install_camera_job(client: httpx.Client, fx: float) -> dict:
 
 def test_starts_uncalibrated_then_rest_installs_reach_the_locator(tmp_path):
     drill = tmp_path / "drill.json"
-    write_drill_calibration(drill, Line3D(point_mm=[10.0, 15.0, 0.0], direction=[0.05, -0.03, 1.0]), method="test", residual_mm=0.1, residual_deg=0.1, label="test")
+    write_drill_calibration(drill, Line3D(point_mm=[10.0, 15.0, 0.0], direction=[0.05, -0.03, 1.0]), method="test", residual_mm=0.3, residual_deg=0.4, label="test")
     cfg = config(tmp_path / "d", camera=f'device = "{tmp_path / "d" / "video0.avi"}"\ndrill_calibration = "{drill}"',
                  recording="record_on_start = false")
     settings = settings_of(cfg)
@@ -59,12 +59,15 @@ def test_starts_uncalibrated_then_rest_installs_reach_the_locator(tmp_path):
         assert bundle is not None and client.get("/status").json()["state"] == "waiting for fluoroscopy"
         assert bundle.locator.camera is bundle.camera and abs(bundle.camera.camera_matrix[0, 0] / 560.0 - 1) < 0.01
         assert np.allclose(bundle.axis_drill.direction, Line3D(point_mm=[0, 0, 0], direction=[0.05, -0.03, 1.0]).direction)
+        # The drill file's stated uncertainty came with its axis (held while the camera was missing): the bound's.
+        assert (bundle.axis_uncertainty.sigma_mm, bundle.axis_uncertainty.rms_tilt_deg) == (0.3, 0.4)
 
         install_camera_job(client, 620.0)  # a new camera calibration replaces the bundle whole
         new = d.node.calibration
         assert new is not bundle and new.locator is not bundle.locator
         assert new.locator.camera is new.camera and abs(new.locator.camera.camera_matrix[0, 0] / 620.0 - 1) < 0.01
         assert bundle.locator.camera.camera_matrix[0, 0] < 600  # the old bundle was not mutated under a frame that holds it
+        assert new.axis_uncertainty == bundle.axis_uncertainty  # a camera install keeps the drill's
 
         # Health reflects what a client sees: the camera unplugged is a 503 naming it (but not a wedge that the watchdog
         # would restart the daemon for); re-plugged, 200 again.

@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drillnav.drivers.sim.scene import NAMED_VIEWS, PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, _perturbed_axis, make_scene
+from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
@@ -27,7 +28,6 @@ from drillnav.registration.video_fluoro import RELIABLE_ANGLE_DEG, predicted_axi
 from drillnav.registration.video_markers import VideoDetections, VideoMarker
 
 BB_SIGMA_PX, CORNER_SIGMA_PX = 0.35, 0.3  # joint_solve's noise model
-AXIS_SIGMA_MM, AXIS_SIGMA_DEG = 0.1, 0.085  # predicted_axis_error's defaults (drill.json 0.1 mm / 0.12 deg)
 DRAWS = 40
 
 
@@ -56,8 +56,12 @@ def _shared(rng, px: np.ndarray, shift_px: float, scale_px: float) -> np.ndarray
     return px + rng.normal(scale=shift_px, size=2) + rng.normal(scale=scale_px) * rel / radius
 
 
-def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None, shared: bool = False):
+def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None, shared: bool = False,
+          drill: AxisUncertainty = AxisUncertainty(), stated: tuple[AxisUncertainty, ...] = ()):
     """One registration: (position error mm, angle error deg, 90 % position bound, 90 % angle bound).
+
+    ``drill``: the drill axis's calibration error is drawn at this size, and the bound states it; ``stated``: the
+    bound also with each of these (two more bounds each, after the first four).
 
     ``names``: the scene's views used (default all), or ``views``: CArmViews of other positioner angles;
     ``marker_ids``: the markers placed (default all); ``full``: also the registration and the predicted error;
@@ -74,8 +78,8 @@ def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, vie
     distortion[:5] += rng.normal(scale=DISTORTION_SIGMA)
     camera = PinholeCamera(width=true.width, height=true.height, camera_matrix=k, distortion=distortion)
     perp = np.linalg.svd(TRUE_DRILL_AXIS_CAMERA.direction[None])[2][1:]  # (2, 3): the two tilt directions
-    tilt = np.radians(AXIS_SIGMA_DEG) * rng.normal(size=2) @ perp
-    axis = Line3D(point_mm=TRUE_DRILL_AXIS_CAMERA.point_mm + rng.normal(scale=AXIS_SIGMA_MM, size=3),
+    tilt = np.radians(drill.per_direction_deg) * rng.normal(size=2) @ perp
+    axis = Line3D(point_mm=TRUE_DRILL_AXIS_CAMERA.point_mm + rng.normal(scale=drill.sigma_mm, size=3),
                   direction=Rotation.from_rotvec(tilt).apply(TRUE_DRILL_AXIS_CAMERA.direction))
     carm_from_drill = scene.drill_pose_towards(rng, offset_mm=5.0, tilt_deg=5.0)
     if views is None:
@@ -102,9 +106,10 @@ def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, vie
     entry = scene.corridor_entry_carm_mm
     found_axis = axis.transformed(reg.carm_from_drill)
     true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(carm_from_drill)
-    pe = predicted_axis_error(video, poses, reg, axis, working_point_carm_mm=entry)
+    pe, *others = [predicted_axis_error(video, poses, reg, axis, working_point_carm_mm=entry, axis_sigma_mm=u.sigma_mm, axis_sigma_deg=u.per_direction_deg)
+                   for u in (drill, *stated)]
     pos = float(np.linalg.norm(found_axis.closest_point(entry) - true_axis.closest_point(entry)))
-    out = (pos, found_axis.angle_deg(true_axis), pe.position90_mm, pe.angle90_deg)
+    out = (pos, found_axis.angle_deg(true_axis), pe.position90_mm, pe.angle90_deg, *(b for o in others for b in (o.position90_mm, o.angle90_deg)))
     return (*out, reg, pe) if full else out
 
 
@@ -136,6 +141,32 @@ def test_the_bound_covers_errors_shared_by_a_tag_and_by_a_marker_view(scene, nam
     cover_pos, cover_ang = float(np.mean(a[:, 0] <= a[:, 2])), float(np.mean(a[:, 1] <= a[:, 3]))
     assert 0.75 <= cover_pos <= 0.975 and 0.75 <= cover_ang <= 0.975, (cover_pos, cover_ang)
     assert 0.4 <= float(np.median(a[:, 0] / a[:, 2])) <= 0.75 and 0.4 <= float(np.median(a[:, 1] / a[:, 3])) <= 0.75
+
+
+def test_a_drill_calibration_stated_worse_widens_the_bound_to_its_errors(scene):
+    """drill.json states the axis's calibration uncertainty, and the bound must carry it as stated: drill-axis
+    errors drawn at 0.4 mm / 0.5 deg RMS tilt (4 times the default), bounded with that statement, are covered
+    about 90 %; bounded with the defaults they are not (30 seeded draws, position / angle: 0.87 / 0.87 stated,
+    0.27 / 0.47 with the defaults)."""
+    worse = AxisUncertainty(sigma_mm=0.4, rms_tilt_deg=0.5)
+    rng = np.random.default_rng(20261201)
+    a = np.array([_draw(scene, rng, 1.0, drill=worse, stated=(AxisUncertainty(),)) for _ in range(30)])
+    stated = float(np.mean(a[:, 0] <= a[:, 2])), float(np.mean(a[:, 1] <= a[:, 3]))
+    default = float(np.mean(a[:, 0] <= a[:, 4])), float(np.mean(a[:, 1] <= a[:, 5]))
+    assert 0.75 <= stated[0] <= 0.975 and 0.75 <= stated[1] <= 0.975, (stated, default)
+    assert default[0] < 0.65 and default[1] < 0.65, (stated, default)
+
+
+def test_drill_json_states_the_uncertainty_and_an_unknown_one_takes_the_defaults(tmp_path):
+    from drillnav.schemas.calibration import read_drill_uncertainty, write_drill_calibration
+
+    write_drill_calibration(tmp_path / "d.json", TRUE_DRILL_AXIS_CAMERA, method="jig", residual_mm=0.3, residual_deg=0.4, label="t")
+    assert read_drill_uncertainty(tmp_path / "d.json") == AxisUncertainty(sigma_mm=0.3, rms_tilt_deg=0.4)
+    write_drill_calibration(tmp_path / "z.json", TRUE_DRILL_AXIS_CAMERA, method="held as an object", residual_mm=0.0, residual_deg=0.0, label="t")
+    assert read_drill_uncertainty(tmp_path / "z.json") == AxisUncertainty()
+    assert AxisUncertainty().per_direction_deg == pytest.approx(0.12 / np.sqrt(2))
+    with pytest.raises(ValueError, match="sigma_mm"):
+        AxisUncertainty(sigma_mm=float("nan"))
 
 
 def test_single_view_with_weak_geometry_is_flagged(scene):

@@ -313,19 +313,22 @@ def test_a_file_size_limit_pauses_and_resumes_without_root(tmp_path):
 
 
 def test_the_calibration_message_carries_the_files_as_they_are(tmp_path):
+    from drillnav.registration.axis_uncertainty import AxisUncertainty
     from drillnav.schemas.calibration import write_camera_calibration
     from drillnav.schemas.calibration_message import active_calibration_message
 
     scene = make_scene(seed=3, render=False)
     cam_file = tmp_path / "camera.json"
     write_camera_calibration(cam_file, scene.calibrated_camera, rms_px=0.31, per_view_errors_px=[0.3, 0.32], label="OR 2")
+    held = AxisUncertainty(sigma_mm=0.3, rms_tilt_deg=0.4)
     data = active_calibration_message(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, stamp_ns=7,
-                                      camera_file=cam_file, drill_file=tmp_path / "none.json")
+                                      camera_file=cam_file, drill_file=tmp_path / "none.json", axis_uncertainty=held)
     doc = msg.decode_json(data)
     assert doc["camera"] == json.loads(cam_file.read_text()) and doc["source"] == str(cam_file)
     assert doc["drill"]["label"] == "in use (no file)"  # no drill file: the axis in use
     cal = decode_calibration_message(data)
     assert np.allclose(cal.camera.camera_matrix, scene.calibrated_camera.camera_matrix) and np.allclose(cal.axis_drill.point_mm, scene.calibrated_axis_drill.point_mm)
+    assert cal.axis_uncertainty == held  # the axis in use with its stated uncertainty: a replay's bound is the live one's
     with pytest.raises(ValueError, match="camera"):
         decode_calibration_message(msg.encode_json({"stamp_ns": 1, "camera": {"schema": "x"}, "drill": doc["drill"]}))
 

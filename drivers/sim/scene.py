@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
 from drillnav.registration.line import Line3D
@@ -246,6 +247,7 @@ def _perturbed_camera(rng, camera: PinholeCamera) -> PinholeCamera:
 # Gaussian's 0.12 deg RMS and 0.18 deg 90th percentile, so the predicted bounds over-covered on the twin.
 AXIS_CALIBRATION_SIGMA_MM = 0.1
 AXIS_CALIBRATION_RMS_TILT_DEG = 0.12
+AXIS_CALIBRATION_UNCERTAINTY = AxisUncertainty(sigma_mm=AXIS_CALIBRATION_SIGMA_MM, rms_tilt_deg=AXIS_CALIBRATION_RMS_TILT_DEG)  # drill.json's residuals
 
 
 def _perturbed_axis(rng, axis: Line3D) -> Line3D:
