@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .camera_uncertainty import IntrinsicsUncertainty
 from .transforms import check_points
 
 __all__ = ["PinholeCamera"]
@@ -31,12 +32,16 @@ class PinholeCamera:
         ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
     distortion : array, shape (5,)
         ``[k1, k2, p1, p2, k3]`` (OpenCV order).
+    uncertainty : IntrinsicsUncertainty or None
+        What the calibration states of its own error (camera.json's ``intrinsics_sigma``); None: not stated (the
+        joint solve's priors then take the defaults, ``registration/camera_uncertainty.py``).
     """
 
     width: int
     height: int
     camera_matrix: NDArray[np.float64]
     distortion: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
+    uncertainty: IntrinsicsUncertainty | None = None
 
     def __post_init__(self) -> None:
         k = np.asarray(self.camera_matrix, dtype=np.float64)

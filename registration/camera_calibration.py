@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import PinholeCamera
+from .camera_uncertainty import IntrinsicsUncertainty
 from .errors import DegenerateInput
 
 __all__ = ["BoardSpec", "parse_board", "detect_board", "calibrate_camera", "CameraCalibration"]
@@ -128,7 +129,7 @@ def calibrate_camera(images: list[NDArray[np.uint8]], spec: BoardSpec, *, min_vi
     while True:
         obj = [found[k][1][0].astype(np.float32) for k in use]
         img = [found[k][1][1].astype(np.float32) for k in use]
-        rms, k_mat, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), None, None)
+        rms, k_mat, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(obj, img, (w, h), None, None)
         errs = []
         for o, p, rv, tv in zip(obj, img, rvecs, tvecs):
             proj, _ = cv2.projectPoints(o, rv, tv, k_mat, dist)
@@ -138,5 +139,15 @@ def calibrate_camera(images: list[NDArray[np.uint8]], spec: BoardSpec, *, min_vi
             rejected.append(found[use.pop(worst)][0])
             continue
         break
-    cam = PinholeCamera(width=w, height=h, camera_matrix=k_mat, distortion=dist.ravel()[:5])
+    cam = PinholeCamera(width=w, height=h, camera_matrix=k_mat, distortion=dist.ravel()[:5], uncertainty=_stated(k_mat, std_intrinsics))
     return CameraCalibration(camera=cam, rms_px=float(rms), per_view_errors_px=tuple(errs), used_views=tuple(found[k][0] for k in use), rejected_views=tuple(rejected), not_found_views=tuple(missing))
+
+
+def _stated(camera_matrix: np.ndarray, std_intrinsics: np.ndarray) -> IntrinsicsUncertainty | None:
+    """OpenCV's standard deviations of fx, fy, cx, cy as the calibration's stated uncertainty (the distortion's are
+    not stated: see :class:`IntrinsicsUncertainty`); None where they are not finite (a degenerate set of views)."""
+    s = np.asarray(std_intrinsics, dtype=np.float64).ravel()
+    if s.size < 4 or not np.all(np.isfinite(s[:4])):
+        return None
+    fx, fy = camera_matrix[0, 0], camera_matrix[1, 1]
+    return IntrinsicsUncertainty(focal_rel=float(0.5 * (s[0] / fx + s[1] / fy)), principal_px=float(max(s[2], s[3])))

@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
+from .camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY, camera_priors
 from .carm import intensifier_shift_px
 from .errors import MarkersNotFound
 from .markers import MarkerSet
@@ -51,9 +52,10 @@ N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, 
 # distortion's error is a parameter of its own: it used to act only through a focal / principal prior widened
 # to 0.3 % / 1.5 px, a fudge tuned on 4 seeds that, measured again on 32 (benchmarks/bound_coverage.py), put the
 # covariance's position term at 1.3-1.5 times the pose's actual error (docs/identity_and_error.md).
-FOCAL_REL_SIGMA = 0.002
-PRINCIPAL_SIGMA_PX = 0.8
-DISTORTION_SIGMA = (0.003, 0.004, 0.0002, 0.0002, 0.002)
+# A calibration may state a larger uncertainty (camera.json's intrinsics_sigma): registration/camera_uncertainty.py.
+FOCAL_REL_SIGMA = DEFAULT_INTRINSICS_UNCERTAINTY.focal_rel
+PRINCIPAL_SIGMA_PX = DEFAULT_INTRINSICS_UNCERTAINTY.principal_px
+DISTORTION_SIGMA = DEFAULT_INTRINSICS_UNCERTAINTY.distortion
 # Errors shared by a whole group of measurements, which the group's pose absorbs and its residuals therefore
 # cannot show, as the operating room makes them (1 sigma, px; benchmarks/noise_decomposition.py measures each
 # against the twin's truth, seeds 9100-9103, docs/identity_and_error.md). Each group's errors have covariance
@@ -142,9 +144,9 @@ def joint_solve(
     carm_from_marker0: dict[int, NDArray[np.float64]],
     fluoro_sigma_px: float = 0.35,
     corner_sigma_px: float = 0.3,
-    focal_rel_sigma: float = FOCAL_REL_SIGMA,
-    principal_sigma_px: float = PRINCIPAL_SIGMA_PX,
-    distortion_sigma: tuple[float, ...] = DISTORTION_SIGMA,
+    focal_rel_sigma: float | None = None,
+    principal_sigma_px: float | None = None,
+    distortion_sigma: tuple[float, ...] | None = None,
     corner_common_per_sigma: float = CORNER_COMMON_PER_SIGMA,
     corner_scale_per_sigma: float = CORNER_SCALE_PER_SIGMA,
     bb_common_sigma_px: float = BB_COMMON_SIGMA_PX,
@@ -164,6 +166,8 @@ def joint_solve(
     whose corners fit over ``outlier_chi`` sigmas RMS and 3 times the other tags' median, or whose marker stands
     out, is tried without each of its corners in turn: the one corner whose absence makes the tag fit is left
     out (``dropped_corners``) and the marker kept on the other three.
+    ``focal_rel_sigma``, ``principal_sigma_px``, ``distortion_sigma``: the camera priors; None (the default) takes
+    what ``camera.uncertainty`` states, never under the defaults (``registration/camera_uncertainty.py``).
     ``corner_common_per_sigma``, ``corner_scale_per_sigma`` (in units of the corners' independent noise) and
     ``bb_common_sigma_px``, ``bb_scale_sigma_px``: the shift (per axis) and scale shared by a tag's four corners /
     by one marker's BBs in one view (see :data:`CORNER_COMMON_PER_SIGMA`); each group is whitened with them, so
@@ -177,6 +181,10 @@ def joint_solve(
     drill0 = np.asarray(carm_from_drill0, dtype=np.float64)
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
     observations = {i: tuple(observations[i]) for i in ids}
+    stated = camera_priors(camera.uncertainty)  # the calibration's statement, never under a typical calibration's error
+    focal_rel_sigma = stated.focal_rel if focal_rel_sigma is None else focal_rel_sigma
+    principal_sigma_px = stated.principal_px if principal_sigma_px is None else principal_sigma_px
+    distortion_sigma = stated.distortion if distortion_sigma is None else distortion_sigma
     prior_sigma = np.array([focal_rel_sigma, principal_sigma_px, principal_sigma_px, *distortion_sigma], dtype=np.float64)
     if prior_sigma.shape != (N_INTRINSICS,) or not np.all(prior_sigma > 0):
         raise ValueError(f"the camera priors need focal, principal and 5 distortion sigmas, all > 0; got {prior_sigma.tolist()}")

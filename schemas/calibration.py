@@ -12,6 +12,7 @@ import numpy as np
 
 from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.camera_uncertainty import IntrinsicsUncertainty
 from drillnav.registration.line import Line3D
 
 from .geometry_json import axis_from_json, axis_to_json
@@ -43,7 +44,12 @@ def camera_calibration_to_json(camera: PinholeCamera, *, rms_px: float, per_view
         "distortion": [float(v) for v in camera.distortion[:5]],
         "rms_px": float(rms_px),
         "per_view_errors_px": [float(v) for v in per_view_errors_px],
+        **({} if camera.uncertainty is None else {"intrinsics_sigma": _sigma_json(camera.uncertainty)}),
     }
+
+
+def _sigma_json(u: IntrinsicsUncertainty) -> dict[str, Any]:
+    return {"focal_rel": u.focal_rel, "principal_px": u.principal_px, **({} if u.distortion is None else {"distortion": list(u.distortion)})}
 
 
 def camera_calibration_from_json(doc: Any, *, source: str = "camera calibration") -> PinholeCamera:
@@ -55,8 +61,11 @@ def camera_calibration_from_json(doc: Any, *, source: str = "camera calibration"
         d = np.asarray(doc["distortion"], dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{source}: malformed image_size/camera_matrix/distortion ({exc})") from None
+    sigma = doc.get("intrinsics_sigma")
     try:
-        return PinholeCamera(width=w, height=h, camera_matrix=k, distortion=d)
+        stated = None if sigma is None else IntrinsicsUncertainty(focal_rel=sigma["focal_rel"], principal_px=sigma["principal_px"],
+                                                                  distortion=tuple(sigma["distortion"]) if "distortion" in sigma else None)
+        return PinholeCamera(width=w, height=h, camera_matrix=k, distortion=d, uncertainty=stated)
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
 

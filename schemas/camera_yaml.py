@@ -9,7 +9,7 @@
   (identity: a monocular camera), ``projection_matrix`` (``[K | 0]``).
 
 camera.json's own fields with no place in the other format (label, date, RMS,
-per-view errors) travel under a ``drillnav`` key (ROS's parser reads only the
+per-view errors, the stated uncertainty of the intrinsics) travel under a ``drillnav`` key (ROS's parser reads only the
 keys it knows), so camera.json -> YAML -> camera.json is exact. Every document
 read is checked against camera.json's schema and the camera model before it is
 returned: a bad file fails here with the field named.
@@ -29,7 +29,7 @@ from .calibration import camera_calibration_from_json
 
 __all__ = ["CalibrationFormat", "detect_format", "to_opencv_yaml", "from_opencv_yaml", "to_ros_yaml", "from_ros_yaml", "convert"]
 
-_EXTRAS = ("schema", "label", "date", "rms_px", "per_view_errors_px")
+_EXTRAS = ("schema", "label", "date", "rms_px", "per_view_errors_px", "intrinsics_sigma")
 
 
 class CalibrationFormat(str, enum.Enum):
@@ -68,6 +68,8 @@ def to_opencv_yaml(doc: dict[str, Any]) -> str:
     for k in ("schema", "label", "date"):
         if k in doc:
             fs.write(f"drillnav_{k}", str(doc[k]))
+    if "intrinsics_sigma" in doc:  # a mapping: as its JSON text
+        fs.write("drillnav_intrinsics_sigma", json.dumps(doc["intrinsics_sigma"]))
     return fs.releaseAndGetString()
 
 
@@ -100,6 +102,11 @@ def from_opencv_yaml(text: str, *, source: str = "OpenCV YAML") -> dict[str, Any
             doc["rms_px"] = float(node("avg_reprojection_error").real())
         if node("per_view_reprojection_errors") is not None:
             doc["per_view_errors_px"] = node("per_view_reprojection_errors").mat().reshape(-1).astype(np.float64).tolist()
+        if node("drillnav_intrinsics_sigma") is not None:
+            try:
+                doc["intrinsics_sigma"] = json.loads(node("drillnav_intrinsics_sigma").string())
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{source}: drillnav_intrinsics_sigma is not the JSON of camera.json's intrinsics_sigma ({exc})") from None
     finally:
         fs.release()
     return _ordered(_checked(doc, source))
@@ -168,7 +175,7 @@ def from_ros_yaml(text: str, *, source: str = "ROS camera_info YAML") -> dict[st
 
 def _ordered(doc: dict[str, Any]) -> dict[str, Any]:
     """camera.json's own key order (schemas/calibration.py), so a converted file reads like a written one."""
-    order = ("schema", "label", "date", "image_size", "camera_matrix", "distortion", "rms_px", "per_view_errors_px")
+    order = ("schema", "label", "date", "image_size", "camera_matrix", "distortion", "rms_px", "per_view_errors_px", "intrinsics_sigma")
     return {k: doc[k] for k in order if k in doc}
 
 

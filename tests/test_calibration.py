@@ -1,5 +1,6 @@
 """Camera and drill-axis calibration on twin images with known truth and on real photographs."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA as AXIS
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.camera_uncertainty import IntrinsicsUncertainty
 from drillnav.registration.camera_calibration import calibrate_camera, detect_board, parse_board
 from drillnav.registration.drill_axis import (
     JigNotFound, detect_jig, find_jig_poses, fit_axis_cylinder, fit_axis_screw, jig_pose, jig_size_mm, jig_tag_corners_mm,
@@ -42,6 +44,11 @@ def test_twin_intrinsics_recovered(twin_views):
     assert abs(fx / TRUE.focal_px[0] - 1) < 0.005 and abs(fy / TRUE.focal_px[1] - 1) < 0.005
     assert np.hypot(*(np.subtract(cal.camera.principal_point_px, TRUE.principal_point_px))) < 2.0
     assert cal.rms_px < 0.5
+    # Its stated uncertainty (OpenCV's standard deviations of the intrinsics, written to camera.json): the errors
+    # above are a few of its sigmas at most (formal figures are optimistic; the priors never take them under typical).
+    u = cal.camera.uncertainty
+    assert u is not None and 0 < u.focal_rel < 0.005 and 0 < u.principal_px < 2.0 and u.distortion is None, u
+    assert abs(fx / TRUE.focal_px[0] - 1) < 10 * u.focal_rel
 
 
 def test_fronto_parallel_set_refused():
@@ -134,8 +141,18 @@ def test_calibration_files_validated(tmp_path):
 
     p = tmp_path / "camera.json"
     write_camera_calibration(p, TRUE, rms_px=0.2, per_view_errors_px=[0.1, 0.3], label="t")
-    assert read_camera_calibration(p).focal_px == TRUE.focal_px
+    assert read_camera_calibration(p).focal_px == TRUE.focal_px and read_camera_calibration(p).uncertainty is None  # none stated
+    stated = IntrinsicsUncertainty(focal_rel=0.004, principal_px=1.5, distortion=(0.01, 0.02, 0.001, 0.001, 0.01))
+    write_camera_calibration(p, dataclasses.replace(TRUE, uncertainty=stated), rms_px=0.2, per_view_errors_px=[0.1, 0.3], label="t")
+    assert read_camera_calibration(p).uncertainty == stated
+    partial = IntrinsicsUncertainty(focal_rel=0.004, principal_px=1.5)  # what a calibration job states: no distortion sigmas
+    write_camera_calibration(p, dataclasses.replace(TRUE, uncertainty=partial), rms_px=0.2, per_view_errors_px=[0.1, 0.3], label="t")
+    assert read_camera_calibration(p).uncertainty == partial and "distortion" not in json.loads(p.read_text())["intrinsics_sigma"]
+    write_camera_calibration(p, dataclasses.replace(TRUE, uncertainty=stated), rms_px=0.2, per_view_errors_px=[0.1, 0.3], label="t")
     doc = json.loads(p.read_text())
+    p.write_text(json.dumps({**doc, "intrinsics_sigma": {**doc["intrinsics_sigma"], "focal_rel": -1}}))
+    with pytest.raises(ValueError, match="intrinsics_sigma"):
+        read_camera_calibration(p)
     doc["distortion"] = [0.1, 0.2]
     p.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="invalid at distortion"):

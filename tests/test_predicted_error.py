@@ -15,12 +15,11 @@ from scipy.spatial.transform import Rotation
 from drillnav.drivers.sim.scene import NAMED_VIEWS, PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, _perturbed_axis, make_scene
 from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY, IntrinsicsUncertainty
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, FluoroDetections
-from drillnav.registration.joint_solve import (
-    BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX, CORNER_COMMON_PER_SIGMA, CORNER_SCALE_PER_SIGMA, DISTORTION_SIGMA, FOCAL_REL_SIGMA, PRINCIPAL_SIGMA_PX,
-)
+from drillnav.registration.joint_solve import BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA_PX, CORNER_COMMON_PER_SIGMA, CORNER_SCALE_PER_SIGMA
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.transforms import apply, make_transform
@@ -57,11 +56,14 @@ def _shared(rng, px: np.ndarray, shift_px: float, scale_px: float) -> np.ndarray
 
 
 def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, views=None, marker_ids=None, shared: bool = False,
-          drill: AxisUncertainty = AxisUncertainty(), stated: tuple[AxisUncertainty, ...] = ()):
+          drill: AxisUncertainty = AxisUncertainty(), stated: tuple[AxisUncertainty, ...] = (),
+          intrinsics: IntrinsicsUncertainty = DEFAULT_INTRINSICS_UNCERTAINTY, state_intrinsics: bool = False):
     """One registration: (position error mm, angle error deg, 90 % position bound, 90 % angle bound).
 
     ``drill``: the drill axis's calibration error is drawn at this size, and the bound states it; ``stated``: the
-    bound also with each of these (two more bounds each, after the first four).
+    bound also with each of these (two more bounds each, after the first four). ``intrinsics``: the camera
+    calibration's error is drawn at this size; ``state_intrinsics``: its camera states it (camera.json's
+    ``intrinsics_sigma``).
 
     ``names``: the scene's views used (default all), or ``views``: CArmViews of other positioner angles;
     ``marker_ids``: the markers placed (default all); ``full``: also the registration and the predicted error;
@@ -70,13 +72,13 @@ def _draw(scene, rng, noise_scale: float, names=None, *, full: bool = False, vie
     """
     true = scene.true_camera
     k = true.camera_matrix.copy()
-    f = 1.0 + rng.normal(scale=FOCAL_REL_SIGMA)
+    f = 1.0 + rng.normal(scale=intrinsics.focal_rel)
     k[0, 0] *= f
     k[1, 1] *= f
-    k[:2, 2] += rng.normal(scale=PRINCIPAL_SIGMA_PX, size=2)
+    k[:2, 2] += rng.normal(scale=intrinsics.principal_px, size=2)
     distortion = true.distortion.copy()
-    distortion[:5] += rng.normal(scale=DISTORTION_SIGMA)
-    camera = PinholeCamera(width=true.width, height=true.height, camera_matrix=k, distortion=distortion)
+    distortion[:5] += rng.normal(scale=intrinsics.distortion)
+    camera = PinholeCamera(width=true.width, height=true.height, camera_matrix=k, distortion=distortion, uncertainty=intrinsics if state_intrinsics else None)
     perp = np.linalg.svd(TRUE_DRILL_AXIS_CAMERA.direction[None])[2][1:]  # (2, 3): the two tilt directions
     tilt = np.radians(drill.per_direction_deg) * rng.normal(size=2) @ perp
     axis = Line3D(point_mm=TRUE_DRILL_AXIS_CAMERA.point_mm + rng.normal(scale=drill.sigma_mm, size=3),
@@ -155,6 +157,27 @@ def test_a_drill_calibration_stated_worse_widens_the_bound_to_its_errors(scene):
     default = float(np.mean(a[:, 0] <= a[:, 4])), float(np.mean(a[:, 1] <= a[:, 5]))
     assert 0.75 <= stated[0] <= 0.975 and 0.75 <= stated[1] <= 0.975, (stated, default)
     assert default[0] < 0.65 and default[1] < 0.65, (stated, default)
+
+
+def test_a_camera_calibration_stated_worse_widens_the_priors_and_the_bound(scene):
+    """camera.json may state its intrinsics' uncertainty; the joint solve's priors (so the bound) take it where
+    it is over a typical calibration's. A camera calibrated 5 times worse than typical (focal 1 %, principal
+    point 4 px, distortion 3x), stated: covered about 90 %; not stated, the priors hold the camera too tightly
+    and the bound does not cover its errors (30 seeded draws each, position / angle: 0.97 / 0.97 stated, 0.33 /
+    0.57 not)."""
+    worse = IntrinsicsUncertainty(focal_rel=0.01, principal_px=4.0, distortion=tuple(3 * v for v in DEFAULT_INTRINSICS_UNCERTAINTY.distortion))
+    cover = {}
+    for state in (True, False):
+        rng = np.random.default_rng(20261202)
+        a = np.array([_draw(scene, rng, 1.0, intrinsics=worse, state_intrinsics=state) for _ in range(30)])
+        cover[state] = float(np.mean(a[:, 0] <= a[:, 2])), float(np.mean(a[:, 1] <= a[:, 3]))
+    assert 0.75 <= min(cover[True]) and max(cover[True]) <= 0.975, cover
+    assert min(cover[False]) < 0.7, cover
+    # Stated smaller than typical (OpenCV's formal figures often are): the priors stay at the typical size.
+    from drillnav.registration.camera_uncertainty import camera_priors
+
+    small = IntrinsicsUncertainty(focal_rel=0.0002, principal_px=0.1, distortion=(0.0,) * 5)
+    assert camera_priors(small) == DEFAULT_INTRINSICS_UNCERTAINTY and camera_priors(None) == DEFAULT_INTRINSICS_UNCERTAINTY
 
 
 def test_drill_json_states_the_uncertainty_and_an_unknown_one_takes_the_defaults(tmp_path):

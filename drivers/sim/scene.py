@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY
 from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
 from drillnav.registration.line import Line3D
 from drillnav.registration.markers import MarkerDesign, MarkerSet, default_marker_set
@@ -233,12 +234,14 @@ def _place_markers_ct(rng, ids, carm_from_ct, patient: VoxelAnatomy, degradation
 
 def _perturbed_camera(rng, camera: PinholeCamera) -> PinholeCamera:
     k = camera.camera_matrix.copy()
-    k[0, 0] *= 1 + rng.normal(scale=0.002)
+    u = DEFAULT_INTRINSICS_UNCERTAINTY
+    k[0, 0] *= 1 + rng.normal(scale=u.focal_rel)
     k[1, 1] = k[0, 0] * (1 + rng.normal(scale=0.0005))
-    k[0, 2] += rng.normal(scale=0.8)
-    k[1, 2] += rng.normal(scale=0.8)
-    d = camera.distortion + rng.normal(scale=[0.003, 0.004, 0.0002, 0.0002, 0.002])
-    return PinholeCamera(width=camera.width, height=camera.height, camera_matrix=k, distortion=d)
+    k[0, 2] += rng.normal(scale=u.principal_px)
+    k[1, 2] += rng.normal(scale=u.principal_px)
+    d = camera.distortion + rng.normal(scale=list(u.distortion))
+    # Drawn at exactly a typical calibration's error, which its camera.json states.
+    return PinholeCamera(width=camera.width, height=camera.height, camera_matrix=k, distortion=d, uncertainty=DEFAULT_INTRINSICS_UNCERTAINTY)
 
 
 # The drill axis's calibration error as drill.json states it (residual_mm per axis of its point, residual_deg the
