@@ -204,10 +204,12 @@ def joint_solve(
         return sol
     trimmed = False
     dropped: dict[int, tuple[int, ...]] = {}
+    known: JointSolution | None = None  # the robust fit of this round's inputs, when the corner check already made it
     while True:
         # Judged on a robust fit (soft L1 beyond 3 sigma), so that one bad marker cannot drag the others
         # into disagreeing with their own data and hide among them.
-        sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="soft_l1")
+        sol = known if known is not None else _solve(ids, observations, corners_px, drill0, markers0, *args, loss="soft_l1")
+        known = None
         drill0, markers0 = sol.carm_from_drill, {i: sol.carm_from_marker[i] for i in ids}
         chi = sol.marker_chi
         # A corner a glove or a glare spot displaced spoils its whole tag (6-8 px of one corner move the axis by
@@ -219,11 +221,12 @@ def joint_solve(
         if suspects:
             i = suspects[0]
             dropped[i] = ()
-            found = _corner_outlier(ids, observations, corners_px, drill0, markers0, args, i, min_px=corner_min_px)
+            found, without = _corner_outlier(ids, observations, corners_px, drill0, markers0, args, i, min_px=corner_min_px, current=sol)
             if found is not None:
                 corners_px = {**corners_px, i: corners_px[i].copy()}
                 corners_px[i][found] = np.nan
                 dropped[i] = (found,)
+            known = without if found is not None else sol  # the next round's inputs are those of the fit in hand
             continue
         worst = max(ids, key=lambda i: chi[i])
         if len(ids) > min_markers and _stands_out(chi, worst, ids, outlier_chi):
@@ -261,19 +264,27 @@ def _corner_suspects(sol: JointSolution, corners_px, ids, min_px: float) -> list
     return sorted(out, key=lambda i: -rms[i])
 
 
-def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marker_id: int, *, min_px: float) -> int | None:
-    """The index of the one corner of ``marker_id``'s tag that, left out, makes the tag fit; None if none does.
+def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marker_id: int, *, min_px: float,
+                    current: JointSolution) -> tuple[int | None, JointSolution | None]:
+    """The index of the one corner of ``marker_id``'s tag that, left out, makes the tag fit, and the robust fit
+    without it (from ``drill0``, ``markers0``); (None, None) if none does. ``current``: the robust fit with every corner.
 
-    Each of the four is left out in turn (robust fit). The floor is ``min_px`` or 3 times the other tags' median
-    corner error, whichever is larger (blur and compression scatter every corner). A corner is named when,
-    without it, each remaining corner of the tag is within the floor, it is itself over 3 floors from where the
-    solution projects it, and the chi-square is under half of that without any other corner. A corner displaced
+    The two corners farthest from their projection in ``current`` are each left out in turn (robust fit). The
+    floor is ``min_px`` or 3 times the other tags' median corner error, whichever is larger (blur and compression
+    scatter every corner). A corner is named when, without it, each remaining corner of the tag is within the
+    floor, it is itself over 3 floors from where the solution projects it, and the chi-square is under half of
+    that without the other corner tried. A corner displaced
     by a glove or a glare spot, then; not one of a blurred tag's corners, nor a tag that is off as a whole (the
     marker's own test).
     """
     chi2: dict[int, float] = {}
     fits: set[int] = set()
-    for k in range(4):
+    fitted: dict[int, JointSolution] = {}
+    # The two corners farthest from where the solution puts them: a displaced corner is the farthest (the tag's
+    # pose, held by its marker's BBs, cannot follow it), and the second's fit without it is the contrast the
+    # chi-square test needs (any other corner left out keeps the displaced one in). Two solves, not four.
+    off = np.linalg.norm(current.corner_projections_px[marker_id] - corners_px[marker_id], axis=1)
+    for k in [int(j) for j in np.argsort(-np.where(np.isfinite(off), off, -np.inf))[:2]]:
         if not np.isfinite(corners_px[marker_id][k]).all():
             continue
         trial = {**corners_px, marker_id: corners_px[marker_id].copy()}
@@ -282,7 +293,7 @@ def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marke
             sol = _solve(ids, observations, trial, drill0, markers0, *args, loss="soft_l1")
         except (np.linalg.LinAlgError, ValueError):
             continue
-        chi2[k] = sol.chi2
+        chi2[k], fitted[k] = sol.chi2, sol
         errors = _corner_errors_px(sol, trial)
         others = [e for i, e in errors.items() if i != marker_id]
         floor = max(min_px, 3.0 * float(np.nanmedian(np.concatenate(others)))) if others else min_px
@@ -290,11 +301,11 @@ def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marke
         if np.nanmax(errors[marker_id]) <= floor and left_out > 3.0 * floor:
             fits.add(k)
     if len(chi2) < 2:
-        return None
+        return None, None
     best, second = sorted(chi2, key=chi2.get)[:2]
     # One corner, not any: without it the fit is far better than without any other corner. A tag off as a whole
     # (its marker's BBs shifted in a single view, where depth is loose) fits about as well without any one.
-    return best if best in fits and chi2[best] < 0.5 * chi2[second] else None
+    return (best, fitted[best]) if best in fits and chi2[best] < 0.5 * chi2[second] else (None, None)
 
 
 def _noise_scales(jac: NDArray[np.float64], res: NDArray[np.float64], groups: tuple[NDArray[np.int64], ...], *, min_scale: float = 0.5,
