@@ -220,6 +220,14 @@ class CArmView:
         """Distance from the detector's centre to its corner pixel, px."""
         return float(np.hypot((self.columns - 1) / 2.0, (self.rows - 1) / 2.0))
 
+    def distorted_px(self, uv_px: ArrayLike, coefficients_px: ArrayLike | None) -> NDArray[np.float64]:
+        """Ideal pixels (N, 2) where an image intensifier with distortion ``coefficients_px`` (2,: pincushion and S
+        shift at the field's corner, px; :func:`intensifier_shift_px`) shows them; as given for None (a flat panel)."""
+        uv = np.asarray(uv_px, dtype=np.float64)
+        if coefficients_px is None:
+            return uv
+        return uv + intensifier_shift_px(uv, self.center_px, self.corner_radius_px, np.asarray(coefficients_px, dtype=np.float64))
+
     def project(self, points_carm_mm: ArrayLike) -> NDArray[np.float64]:
         """Project points (N, 3) in frame C, mm, to pixels (N, 2) (column, row)."""
         p = check_points(points_carm_mm)

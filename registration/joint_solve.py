@@ -351,7 +351,7 @@ def project_distorted(view, points_carm_mm: NDArray[np.float64], distortion: tup
     """Pixels (N, 2) of points (N, 3) in ``view``, moved by the view's estimated intensifier distortion if any."""
     uv = view.project(points_carm_mm)
     coef = next((c for v, c in distortion if v is view), None)
-    return uv if coef is None else uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, coef)
+    return view.distorted_px(uv, coef)
 
 
 def _trim(observations, carm_from_marker, max_px: float, distortion: tuple = ()) -> tuple:

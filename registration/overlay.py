@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .carm import CArmView, intensifier_shift_px
+from .carm import CArmView
 from .fluoro_markers import FluoroDetections
 from .line import Line3D
 
@@ -62,15 +62,8 @@ def line_across_image(view: CArmView, axis: Line3D) -> tuple[NDArray[np.float64]
 CURVE_POINTS = 65
 
 
-def _distorted(view: CArmView, uv_px: NDArray[np.float64], distortion_px: NDArray[np.float64] | None) -> NDArray[np.float64]:
-    """Ideal pixels (N, 2) moved by an intensifier's distortion (2,) (pincushion, S at the field's corner, px); as given without one."""
-    if distortion_px is None:
-        return uv_px
-    return uv_px + intensifier_shift_px(uv_px, view.center_px, view.corner_radius_px, np.asarray(distortion_px, dtype=np.float64))
-
-
 def _project(view: CArmView, points_carm_mm: NDArray[np.float64], distortion_px: NDArray[np.float64] | None) -> NDArray[np.float64]:
-    return _distorted(view, view.project(points_carm_mm), distortion_px)
+    return view.distorted_px(view.project(points_carm_mm), distortion_px)
 
 
 def _clip_to_image(view: CArmView, curve_px: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -112,7 +105,7 @@ def axis_curve_px(view: CArmView, axis: Line3D, distortion_px: NDArray[np.float6
     mid = a + ((c - a) @ u) * u  # the line's point nearest the centre
     reach = 1.2 * view.corner_radius_px
     ideal = mid + np.linspace(-reach, reach, CURVE_POINTS)[:, None] * u
-    return _clip_to_image(view, _distorted(view, ideal, distortion_px))
+    return _clip_to_image(view, view.distorted_px(ideal, distortion_px))
 
 
 def _px(points: NDArray[np.float64]) -> NDArray[np.int32]:

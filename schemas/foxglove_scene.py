@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from drillnav.registration.camera import PinholeCamera
-from drillnav.registration.carm import CArmView, intensifier_shift_px
+from drillnav.registration.carm import CArmView
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import invert
 
@@ -209,8 +209,7 @@ def view_annotations(view: CArmView, *, stamp_ns: int, axis_carm: Line3D | None 
     k = None if distortion_px is None else np.asarray(distortion_px, dtype=np.float64).reshape(2)
 
     def image(points_carm_mm: NDArray[np.float64]) -> NDArray[np.float64]:
-        uv = view.project(points_carm_mm)
-        return uv if k is None else uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, k)
+        return view.distorted_px(view.project(points_carm_mm), k)
 
     n = 2 if k is None else STRIP_POINTS
     out = ImageAnnotations()
