@@ -9,7 +9,8 @@ for there:
    the profiles step from the bright base outside to the black border inside, taken over the edge's samples by a
    high percentile so that an occluded part does not decide it. Then each sample's step is placed to sub-pixel
    (:mod:`.tag_edges`, as the locator refines detected tags) and kept only when it looks like a clean border step
-   (its contrast near the edge's, neither side saturated); a line is fitted to the kept samples, trimming the
+   (its contrast near the edge's, its dark side unclipped, its bright side clipped only beyond the upper half of
+   the step's gradient); a line is fitted to the kept samples, trimming the
    outliers, and needs ``min_edge_fraction`` of the edge. The corners are the lines' intersections, so a hidden
    corner comes from its two edges' extensions.
 2. The identity is verified by reading the code cells that can be read: a saturated cell, a cell beside a
@@ -18,6 +19,13 @@ for there:
    Accepted only when at least ``min_cells`` cells are read, at least ``min_agreement`` of them agree with the
    expected id's code, the border reads black, and the nearest other id of the dictionary (at the same rotation)
    disagrees with what was read in at least ``min_margin_cells`` more cells than the expected id does.
+   A glare spot on a glossy tag can leave fewer cells than that: then, when the ids that may lie there are known
+   (``rivals``: the marker set's other tags of the dictionary not seen elsewhere in the frame; empty when every
+   one is), at least ``min_cells_among_rivals`` cells read,
+   ``min_agreement`` of them agreeing, every rival at every rotation disagreeing in at least ``min_margin_cells``
+   more cells than the expected id, and no id of the dictionary agreeing with more cells than the expected one,
+   suffice. The place itself is the rest of the evidence: a black-bordered square whose four edges lie within
+   ``tolerance_px`` of where the registration predicts this marker's tag.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
 are refused, each with its reason.
@@ -25,6 +33,7 @@ are refused, each with its reason.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -118,6 +127,8 @@ def recover_tag(
     min_agreement: float = 0.9,
     min_margin_cells: int = 4,
     min_contrast: float = 30.0,
+    rivals: Sequence[int] | None = None,
+    min_cells_among_rivals: int = 8,
 ) -> TagRecovery:
     """Find the tag ``aruco_id`` of ``dictionary`` near its predicted corners (4, 2) px (OpenCV order) in ``gray`` (H, W) float32.
 
@@ -147,8 +158,12 @@ def recover_tag(
     contrast = box[..., gap:] - box[..., : box.shape[-1] - gap]                       # (4, s, o - 2 gap + 1)
     cand = offsets[gap - 1 : gap - 1 + contrast.shape[-1]] + step_px / 2
     in_tol = np.abs(cand) <= tolerance_px
-    # A high percentile over the edge's samples: a step must run along most of what is visible of the edge.
-    edge_score = np.percentile(contrast, 60, axis=1)                                  # (4, o')
+    # A high percentile over the edge's samples: a step must run along most of what is visible of the edge. A
+    # sample clipped along most of its profile (a highlight over the border) shows nothing, and is not counted.
+    blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
+    with np.errstate(all="ignore"):
+        edge_score = np.nanpercentile(np.where(blind[..., None], np.nan, contrast), 60, axis=1)  # (4, o')
+    edge_score = np.nan_to_num(edge_score, nan=-np.inf)
     edge_score[:, ~in_tol] = -np.inf
     best = np.argmax(edge_score, axis=1)
     edge_contrast = edge_score[np.arange(4), best]
@@ -157,7 +172,11 @@ def recover_tag(
         return TagRecovery(corners_px=None, reason=f"no border step within {tolerance_px:.0f} px of edge {k} (contrast {edge_contrast[k]:.0f})")
     coarse = cand[best]                                                               # (4,)
     # 2. Fine: every sample's step near its edge's coarse offset, kept when it is a clean border step.
-    window = 3.0
+    # The window holds the whole step: +-3 px for a sharp edge, wider under motion blur (the gradient's upper half
+    # spans the blur), where a narrow window would cut the step and pull it towards the coarse offset.
+    grad = np.clip(np.diff(vals, axis=-1), 0.0, None)
+    step_width = np.median((grad > 0.5 * grad.max(axis=-1, keepdims=True)).sum(axis=-1), axis=1) * step_px  # (4,)
+    window = float(np.clip(step_width.max() + 1.0, 3.0, tolerance_px))
     j0 = np.searchsorted(offsets, coarse - window)
     width = int(round(2 * window / step_px)) + 1
     idx = np.clip(j0[:, None] + np.arange(width)[None, :], 0, len(offsets) - 1)       # (4, width)
@@ -172,7 +191,9 @@ def recover_tag(
     lv_in = _levels_at(vals, offsets, pos, (-3.0, -1.5))
     step_contrast = lv_out - lv_in
     clean = stepped & (step_contrast >= 0.5 * edge_contrast[:, None]) & (step_contrast <= 2.0 * edge_contrast[:, None] + 20.0)
-    clean &= (_levels_at(vals, offsets, pos, (1.0, 3.5), reduce=np.max) < SATURATED) & (_levels_at(vals, offsets, pos, (-3.5, -1.0), reduce=np.max) < SATURATED)
+    # A clipped black side is a highlight over the border. A clipped bright side (an over-exposed base) is harmless
+    # unless the clip cuts into the upper half of the step's gradient, which pulls the step inwards.
+    clean &= (_levels_at(vals, offsets, pos, (-3.5, -1.0), reduce=np.max) < SATURATED) & ~_clip_cuts_step(sub_vals)
     # Levels like the edge's own: an occluder (a glove over the border) steps to black from a duller grey, and
     # where it ends the border's step is displaced by the occluder's boundary: its neighbours are dropped too.
     ref_out = np.array([np.median(lv_out[k][clean[k]]) if clean[k].any() else np.inf for k in range(4)])
@@ -204,7 +225,29 @@ def recover_tag(
     if not crossed[0] or np.linalg.norm(corners - pred, axis=1).max() > 1.5 * tolerance_px:
         return TagRecovery(corners_px=None, reason=f"edges found but their corners lie over {1.5 * tolerance_px:.0f} px from the prediction", edge_fraction=frac_t)
     return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
-                   min_contrast=min_contrast, edge_fraction=frac_t)
+                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals)
+
+
+def _clip_cuts_step(profiles: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(4, s, w) profiles (offsets growing outwards, bright outside) -> (4, s): the clip at the bright side cuts
+    into the upper half of the step's gradient, where :func:`.tag_edges.step_positions` takes the step from.
+
+    A blurred step's gradient is symmetric about its peak; a clip that cuts it leaves the upper half's outer side
+    shorter than its inner side (by over one sample) and the profile clipped just past it.
+    """
+    grad = np.clip(np.diff(profiles, axis=-1), 0.0, None)
+    n = grad.shape[-1]
+    peak = np.argmax(grad, axis=-1)
+    upper = grad >= 0.5 * np.take_along_axis(grad, peak[..., None], axis=-1)
+    idx = np.arange(n)
+    # The contiguous run of the upper half around the peak: its first and last intervals.
+    below_in = ~upper & (idx < peak[..., None])
+    below_out = ~upper & (idx > peak[..., None])
+    first = np.where(below_in.any(axis=-1), n - 1 - np.argmax(below_in[..., ::-1], axis=-1) + 1, 0)
+    last = np.where(below_out.any(axis=-1), np.argmax(below_out, axis=-1) - 1, n - 1)
+    after = np.minimum(last[..., None] + 1 + np.arange(3), profiles.shape[-1] - 1)    # the profile's next samples
+    clipped_after = (np.take_along_axis(profiles, after, axis=-1) >= SATURATED).any(axis=-1)
+    return clipped_after & ((last - peak) < (peak - first) - 1)
 
 
 def _levels_at(vals: NDArray[np.float64], offsets: NDArray[np.float64], pos: NDArray[np.float64], span: tuple[float, float], *, reduce=np.mean) -> NDArray[np.float64]:
@@ -219,7 +262,7 @@ def _levels_at(vals: NDArray[np.float64], offsets: NDArray[np.float64], pos: NDA
 
 
 def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
-            edge_fraction) -> TagRecovery:
+            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8) -> TagRecovery:
     """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
     s = codes.shape[1]
     n = s + 2  # cells across the tag, black border included
@@ -267,10 +310,25 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
     agree[aruco_id] = -1
     other = int(np.argmax(agree))
     common = dict(cells_read=n_read, cells_agreeing=mine, nearest_other_id=other, nearest_other_agreeing=int(agree[other]), edge_fraction=edge_fraction)
-    if n_read < min_cells:
-        return TagRecovery(corners_px=None, reason=f"only {n_read} code cells readable (at least {min_cells} needed)", **common)
     if mine < min_agreement * n_read:
         return TagRecovery(corners_px=None, reason=f"{mine} of {n_read} code cells agree with id {aruco_id} (at least {100 * min_agreement:.0f} % needed)", **common)
-    if (n_read - int(agree[other])) - (n_read - mine) < min_margin_cells:
-        return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+    if n_read >= min_cells:
+        if mine - int(agree[other]) < min_margin_cells:
+            return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+        return TagRecovery(corners_px=corners, reason="", **common)
+    # Fewer cells than the dictionary-wide rule needs: judged among the ids that may lie there.
+    if rivals is None or n_read < min_cells_among_rivals:
+        return TagRecovery(corners_px=None, reason=f"only {n_read} code cells readable (at least {min_cells} needed"
+                           + (f", or {min_cells_among_rivals} with the marker set's tags known)" if rivals is not None else ")"), **common)
+    if int(agree[other]) >= mine:
+        return TagRecovery(corners_px=None, reason=f"id {other} fits the {n_read} cells read as well as id {aruco_id}", **common)
+    rival_ids = sorted({int(r) for r in rivals} - {aruco_id})
+    if not rival_ids:
+        return TagRecovery(corners_px=corners, reason="", **common)
+    rival_codes = np.stack([np.rot90(codes[r], k).reshape(-1) for r in rival_ids for k in range(4)])
+    rival_agree = ((rival_codes == read[None, :]) & known[None, :]).sum(axis=1)
+    best = int(np.argmax(rival_agree))
+    if mine - int(rival_agree[best]) < min_margin_cells:
+        return TagRecovery(corners_px=None, reason=f"the marker set's id {rival_ids[best // 4]} fits the {n_read} cells read nearly as well "
+                           f"({int(rival_agree[best])} vs {mine})", **common)
     return TagRecovery(corners_px=corners, reason="", **common)

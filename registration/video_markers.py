@@ -277,11 +277,13 @@ class VideoMarkerLocator:
         if not todo:
             return video
         gray = _gray(image).astype(np.float32)
+        # The tags that could lie where another is expected: the marker set's, less those seen elsewhere in this frame.
+        rivals = {name: tuple(a for a, spec in per.items() if spec.marker_id not in have) for name, per in self._specs.items()}
         found: list[VideoMarker] = []
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
             for pred in np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2):
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px)
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name])
                 if got.accepted:
                     found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
                     break

@@ -11,6 +11,7 @@ no registration of its own.
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -167,3 +168,63 @@ def test_the_live_worker_tracks_a_tag_the_glove_slides_over(gloved, fluoro_poses
         # Long after (no recent registration), the same gloved frame has nothing to predict from.
         with pytest.raises(DrillnavError, match="only 0 marker"):
             worker.track(image, calibration=calibration, poses=only, stamp_ns=3_000_000_000)
+
+
+def test_a_glared_tag_with_few_readable_cells_is_recovered_when_no_other_tag_of_the_set_can_be_there():
+    """A saturated highlight leaves 10 of a tag's 36 code cells readable (twin seed 3000, tag glare, first frame
+    of the detection benchmark's poses). Any of 250 ids could agree with 10 cells, so, alone, they do not name it;
+    but every other tag of the marker set is in plain view elsewhere in the frame, so none of them lies at the
+    predicted place: the 10 cells, all agreeing, and the black-bordered square where the marker's tag is expected
+    name it."""
+    seed, marker = 3000, 33
+    scene = make_scene(seed=seed, render=False, degradations=Degradations(tag_glare=True))
+    pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
+    image = scene.render_camera(np.random.default_rng([seed, 3]), carm_from_drill=pose)
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    video = locator.locate(image)
+    truth = _true_corners(scene, pose)
+    seen = {m.marker_id for m in video.markers}
+    assert marker in truth and marker not in seen, "the glare no longer hides the tag from ArUco"
+    assert set(truth) - {marker} <= seen, "another tag of the set is missing too"
+    gray = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
+    aruco_id = scene.marker_set.by_id(marker).aruco_id
+    predicted = _predicted(scene, pose, marker)
+    # Judged against the whole dictionary (no knowledge of the set): too few cells.
+    alone = recover_tag(gray, predicted, aruco_id=aruco_id)
+    assert not alone.accepted and "code cells readable" in alone.reason and 8 <= alone.cells_read < 20
+    assert alone.cells_agreeing == alone.cells_read
+    # No other tag of the set can be there: recovered, within a pixel of the truth.
+    got = recover_tag(gray, predicted, aruco_id=aruco_id, rivals=())
+    assert got.accepted, got.reason
+    assert np.linalg.norm(got.corners_px - truth[marker], axis=1).max() <= CORNER_TOLERANCE_PX
+    # Were every id of the dictionary a rival (all of them unaccounted for), some id fits the 10 cells nearly as well.
+    crowd = recover_tag(gray, predicted, aruco_id=aruco_id, rivals=range(250))
+    assert not crowd.accepted and "fits the" in crowd.reason
+    # Through the locator, whose rivals are the set's tags not seen elsewhere in the frame.
+    more = locator.recover(image, video, {marker: predicted})
+    assert more.by_id()[marker].recovered
+    assert np.linalg.norm(more.by_id()[marker].corners_px - truth[marker], axis=1).max() <= CORNER_TOLERANCE_PX
+
+
+def test_an_over_exposed_base_is_used_unless_its_clip_cuts_into_the_step():
+    """A border step (black inside, white base outside) blurred by a Gaussian of 2 px, sampled every 0.5 px.
+    Clipped at 255 beyond the upper half of its gradient, the step is placed where the unclipped one is, and the
+    sample is kept; clipped inside that half, the step is pulled inwards, and the sample is dropped."""
+    from scipy.special import erf
+
+    from drillnav.registration.tag_edges import step_positions
+    from drillnav.registration.tag_recovery import _clip_cuts_step
+
+    offsets = np.arange(-6.0, 6.0 + 0.25, 0.5)
+    true_step = 0.3
+
+    def profile(white):
+        return 40.0 + (white - 40.0) * 0.5 * (1.0 + erf((offsets - true_step) / (2.0 * np.sqrt(2.0))))
+
+    unclipped, mild, heavy = profile(250.0), np.minimum(profile(275.0), 255.0), np.minimum(profile(420.0), 255.0)
+    pos, ok = step_positions(np.stack([unclipped, mild, heavy]), offsets, falling_inwards=True)
+    assert ok.all()
+    assert abs(pos[0] - true_step) < 0.05 and abs(pos[1] - true_step) < 0.05  # a clip past the upper half: no bias
+    assert pos[2] < true_step - 0.2                                            # a clip inside it: pulled inwards
+    cut = _clip_cuts_step(np.stack([unclipped, mild, heavy])[None])[0]
+    assert cut.tolist() == [False, False, True]
