@@ -326,6 +326,17 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
                 ident, diam_mm = candidate, sizes_mm
         if ident is not None:
             break
+    if ident is None and last_error is None and len(inside) >= 4:
+        # No blob where the central BB belongs (dense bone, a K-wire or the dose hid it): the ring's centre stands
+        # in for it (weak perspective: within a fraction of a mm in the plane at these tilts), the smallest blob
+        # is one of the code's 2.0 mm BBs, and the central BB is the pattern's one missing BB.
+        sizes_mm = diam_px * (2.0 / diam_px.min())
+        try:
+            ident, diam_mm = identify(plane, sizes_mm, marker_set), sizes_mm
+        except MarkerNotIdentified as exc:
+            last_error = exc
+        if ident is not None and np.any(ident.bb_index == 0):
+            ident, last_error = None, None  # a blob taken for the central BB after all: not the case this is for
     if ident is None:
         reason = str(last_error) if last_error else "no central BB found inside the ring"
         return RejectedRing(reason=reason, center_px=np.array([cx, cy]))
