@@ -41,13 +41,18 @@ def test_no_wrong_identity_on_the_hard_view(hard_ap):
     view = scene.views["ap"]
     assert len(det.markers) >= 3
     for m in det.markers:
-        truth = view.project(apply(scene.carm_from_marker[m.marker_id], np.zeros((1, 3))))[0]
         # The intensifier's distortion moves points by up to 8 px; a wrong identity is a ring ~60 mm away.
-        assert np.hypot(*(np.asarray(m.ring_ellipse[0]) - truth)) < 20.0, m.marker_id
-        bbs = view.project(apply(scene.carm_from_marker[m.marker_id], default_marker_set().by_id(m.marker_id).bb_centers_mm))
-        ok = m.bb_index >= 0
-        found = np.array([b.center_px for b in m.bbs])[ok]
-        assert np.all(np.linalg.norm(found - bbs[m.bb_index[ok]], axis=1) < 10.0), m.marker_id
+        _assert_at_its_true_place(scene, view, m, ring_px=20.0, bb_px=10.0)
+
+
+def _assert_at_its_true_place(scene, view, m: DetectedMarker, *, ring_px: float, bb_px: float) -> None:
+    """The identified marker's ring centre and matched BBs lie where the twin put that marker."""
+    truth = view.project(apply(scene.carm_from_marker[m.marker_id], np.zeros((1, 3))))[0]
+    assert np.hypot(*(np.asarray(m.ring_ellipse[0]) - truth)) < ring_px, m.marker_id
+    bbs = view.project(apply(scene.carm_from_marker[m.marker_id], default_marker_set().by_id(m.marker_id).bb_centers_mm))
+    ok = m.bb_index >= 0
+    found = np.array([b.center_px for b in m.bbs])[ok]
+    assert np.all(np.linalg.norm(found - bbs[m.bb_index[ok]], axis=1) < bb_px), m.marker_id
 
 
 def _marker(marker_id: int, centres, cost: float) -> DetectedMarker:
@@ -88,9 +93,4 @@ def test_a_marker_whose_central_bb_is_hidden_is_identified_from_its_ring_centre(
     assert {m.marker_id for m in after.markers} == {m.marker_id for m in before.markers}, [r.reason for r in after.rejected]
     for m in after.markers:
         assert 0 not in m.bb_index.tolist(), m.marker_id  # no blob taken for the hidden central BB
-        truth = view.project(apply(scene.carm_from_marker[m.marker_id], np.zeros((1, 3))))[0]
-        assert np.hypot(*(np.asarray(m.ring_ellipse[0]) - truth)) < 5.0, m.marker_id
-        bbs = view.project(apply(scene.carm_from_marker[m.marker_id], default_marker_set().by_id(m.marker_id).bb_centers_mm))
-        ok = m.bb_index >= 0
-        found = np.array([b.center_px for b in m.bbs])[ok]
-        assert np.all(np.linalg.norm(found - bbs[m.bb_index[ok]], axis=1) < 3.0), m.marker_id
+        _assert_at_its_true_place(scene, view, m, ring_px=5.0, bb_px=3.0)
