@@ -141,6 +141,8 @@ def recover_tag(
     codes = dictionary_codes(dictionary)
     if not 0 <= aruco_id < len(codes):
         raise ValueError(f"ArUco id {aruco_id} is not in {dictionary} (0-{len(codes) - 1})")
+    if rivals is not None and any(not 0 <= int(r) < len(codes) for r in rivals):
+        raise ValueError(f"rival ArUco ids {sorted(int(r) for r in rivals if not 0 <= int(r) < len(codes))} are not in {dictionary} (0-{len(codes) - 1})")
     side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
     if side.min() < 12.0:
         return TagRecovery(corners_px=None, reason=f"predicted tag too small ({side.min():.1f} px side)")

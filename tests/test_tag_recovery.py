@@ -228,3 +228,9 @@ def test_an_over_exposed_base_is_used_unless_its_clip_cuts_into_the_step():
     assert pos[2] < true_step - 0.2                                            # a clip inside it: pulled inwards
     cut = _clip_cuts_step(np.stack([unclipped, mild, heavy])[None])[0]
     assert cut.tolist() == [False, False, True]
+
+
+def test_rivals_outside_the_dictionary_are_a_clear_error(gloved):
+    scene, pose, image, _ = gloved
+    with pytest.raises(ValueError, match=r"rival ArUco ids \[250\] are not in DICT_6X6_250"):
+        recover_tag(image.astype(np.float32), _predicted(scene, pose, GLOVED), aruco_id=scene.marker_set.by_id(GLOVED).aruco_id, rivals=(3, 250))
