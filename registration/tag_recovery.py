@@ -122,7 +122,7 @@ def recover_tag(
     tolerance_px: float = 8.0,
     samples: int = 48,
     step_px: float = 0.5,
-    min_edge_fraction: float = 0.4,
+    min_edge_fraction: float = 0.3,
     min_cells: int = 20,
     min_agreement: float = 0.9,
     min_margin_cells: int = 4,
