@@ -73,8 +73,8 @@ def test_pieces_sharing_bbs_are_kept_once_and_disjoint_rings_refused():
 
 @pytest.mark.parametrize("seed", [3000, 3001])
 def test_a_marker_whose_central_bb_is_hidden_is_identified_from_its_ring_centre(seed):
-    """Dense bone, a K-wire or the dose can hide a marker's central BB (on the real CT as the patient, seeds 6101
-    and 6102 of the study lost a marker each so in the AP view). The ring's centre stands in for it: every
+    """Dense bone, a K-wire or the dose can hide a marker's central BB (with the real CT as the patient, the
+    study's seeds 6101 and 6102 each lost one marker that way in the AP view). The ring's centre stands in for it: every
     marker of the view whose central BB is painted over with the background around it is still identified, at its
     true place, with the central BB missing from its matched BBs."""
     scene = make_scene(seed=seed, views="ap,lateral", render=False)
