@@ -16,6 +16,10 @@ own error is not: ``benchmarks/accuracy.py --diagnose --per-degradation`` measur
 registration). Reported: tags recovered, false recoveries (a corner over 3 px from the truth) and the recovered
 corners' RMS error.
 
+The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
+:mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
+false ones, their corners' RMS error and the search's time per frame.
+
     .venv/bin/python benchmarks/tag_detection.py --seeds 3 --poses 4
 
 Prints a table and one JSON line.
@@ -50,12 +54,27 @@ def _true_corners(scene, carm_from_drill) -> dict[int, np.ndarray]:
     return out
 
 
+def _score_recovered(video, truth: dict[int, np.ndarray], row: dict, name: str) -> None:
+    """Count ``video``'s recovered markers into ``row[name]`` (within 3 px of the truth at every corner, their squared
+    corner errors into ``row["sq_err_" + name]``) or ``row[name + "_false"]``."""
+    for m in video.markers:
+        if not m.recovered:
+            continue
+        err = np.linalg.norm(m.corners_px - truth[m.marker_id], axis=1) if m.marker_id in truth else np.array([np.inf])
+        if err.max() > 3.0:
+            row[f"{name}_false"] += 1
+            continue
+        row[name] += 1
+        row[f"sq_err_{name}"] += float(np.sum(err**2))
+
+
 def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, conditions: list[str] | None = None) -> dict[str, dict]:
     """condition -> {visible, found, false_ids, corner_rms_px, ms_per_frame, recovered, recovered_false, recovered_corner_rms_px}
     summed over seeds x poses."""
     conditions = conditions if conditions is not None else ["none", *CAMERA, "all"]
     rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0,
-                 "recovered": 0, "recovered_false": 0, "sq_err_recovered": 0.0} for c in conditions}
+                 "recovered": 0, "recovered_false": 0, "sq_err_recovered": 0.0,
+                 "searched": 0, "searched_false": 0, "sq_err_searched": 0.0, "search_seconds": 0.0} for c in conditions}
     for seed in range(first_seed, first_seed + seeds):
         for cond in conditions:
             # "all": every camera degradation (the fluoroscopy ones do not touch the camera frame).
@@ -85,15 +104,11 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                 expected = {i: predict_tag_corners(carm_from_drill=pose, carm_from_marker=scene.carm_from_marker[i],
                                                    tag_corners_marker_mm=scene.marker_set.by_id(i).tag_corners_mm(), camera=scene.calibrated_camera)
                             for i in missed}
-                for m in locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}).markers:
-                    if not m.recovered:
-                        continue
-                    err = np.linalg.norm(m.corners_px - truth[m.marker_id], axis=1) if m.marker_id in truth else np.array([np.inf])
-                    if err.max() > 3.0:
-                        r["recovered_false"] += 1
-                        continue
-                    r["recovered"] += 1
-                    r["sq_err_recovered"] += float(np.sum(err**2))
+                t0 = time.perf_counter()
+                searched = locator.search(frame, det, scene.marker_set.ids)
+                r["search_seconds"] += time.perf_counter() - t0
+                _score_recovered(searched, truth, r, "searched")
+                _score_recovered(locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}), truth, r, "recovered")
     out = {}
     for c, r in rows.items():
         out[c] = {
@@ -102,6 +117,9 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
             "ms_per_frame": 1000.0 * r["seconds"] / max(r["frames"], 1),
             "recovered": r["recovered"], "recovered_false": r["recovered_false"],
             "recovered_corner_rms_px": float(np.sqrt(r["sq_err_recovered"] / max(4 * r["recovered"], 1))),
+            "searched": r["searched"], "searched_false": r["searched_false"],
+            "searched_corner_rms_px": float(np.sqrt(r["sq_err_searched"] / max(4 * r["searched"], 1))),
+            "search_ms_per_frame": 1000.0 * r["search_seconds"] / max(r["frames"], 1),
         }
     return out
 
@@ -130,10 +148,11 @@ def main() -> None:
     args = ap.parse_args()
     res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed)
     print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8} "
-          f"{'recovered':>9} {'false':>5} {'rms px':>6}")
+          f"{'recovered':>9} {'false':>5} {'rms px':>6} {'searched':>8} {'false':>5} {'rms px':>6} {'ms':>5}")
     for c, r in res.items():
         print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f} "
-              f"{r['recovered']:>9} {r['recovered_false']:>5} {r['recovered_corner_rms_px']:>6.3f}")
+              f"{r['recovered']:>9} {r['recovered_false']:>5} {r['recovered_corner_rms_px']:>6.3f} "
+              f"{r['searched']:>8} {r['searched_false']:>5} {r['searched_corner_rms_px']:>6.3f} {r['search_ms_per_frame']:>5.1f}")
     empty = false_ids_without_tags(seeds=args.seeds, first_seed=args.first_seed)
     print(f"false ids on {args.seeds} tag-free frames (every camera degradation): {empty}")
     print(json.dumps({"seeds": args.seeds, "poses": args.poses, "first_seed": args.first_seed, "false_ids_tag_free_frames": empty,
@@ -141,7 +160,10 @@ def main() -> None:
                                             "false_ids": r["false_ids"], "corner_rms_px": round(r["corner_rms_px"], 4),
                                             "locate_ms_per_frame": round(r["ms_per_frame"], 2), "recovered_tags": r["recovered"],
                                             "recovered_false": r["recovered_false"],
-                                            "recovered_corner_rms_px": round(r["recovered_corner_rms_px"], 4)} for c, r in res.items()}}))
+                                            "recovered_corner_rms_px": round(r["recovered_corner_rms_px"], 4),
+                                            "searched_tags": r["searched"], "searched_false": r["searched_false"],
+                                            "searched_corner_rms_px": round(r["searched_corner_rms_px"], 4),
+                                            "search_ms_per_frame": round(r["search_ms_per_frame"], 2)} for c, r in res.items()}}))
 
 
 if __name__ == "__main__":

@@ -27,7 +27,10 @@ path.
 Tags the detector misses (a glove over a corner, glare on a glossy tag) are looked for where the frame's own
 registration predicts them, and the frame registered again with them (:func:`register_with_recovery`,
 :mod:`.tag_recovery`): only markers posed in fluoroscopy and missing from the frame, so a frame that finds
-every tag pays nothing.
+every tag pays nothing. A frame that shares no marker with fluoroscopy has no registration to predict from: its
+missing tags are searched for without a prediction (:func:`search_missing_tags`, :mod:`.tag_search`: tag outlines
+with a part hidden, of which ArUco made no candidate), about 50 ms on a 1280x720 frame, paid only by a frame that
+would otherwise be refused.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ from .tag_recovery import predict_tag_corners
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
@@ -129,6 +132,20 @@ def refinement_due(refinement: JointRefinement, *, now_ns: int, joint_period_ns:
     return now_ns - refinement.at_ns >= joint_period_ns
 
 
+def _shares_a_marker(video: VideoDetections, poses: tuple[MarkerPose, ...]) -> bool:
+    """Whether a marker the frame found is posed (or has BBs) in fluoroscopy: without one nothing registers."""
+    seen = {m.marker_id for m in video.markers}
+    return any(p.marker_id in seen and (p.converged or p.observations) for p in poses)
+
+
+def search_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, poses: tuple[MarkerPose, ...]) -> VideoDetections:
+    """``video`` with the tags of markers fluoroscopy posed (or found BBs of) that the frame misses, found with no
+    prediction (:meth:`.VideoMarkerLocator.search`): for a frame that shares no marker with fluoroscopy, which
+    would otherwise be refused. Returns ``video`` itself when nothing is missing or nothing was found."""
+    wanted = {p.marker_id for p in poses if p.converged or p.observations} & locator.marker_ids
+    return locator.search(image, video, wanted) if wanted else video
+
+
 def _missing(video: VideoDetections, poses: tuple[MarkerPose, ...], locator: VideoMarkerLocator) -> list[MarkerPose]:
     """The markers posed in fluoroscopy (converged) that the locator knows and the frame did not find."""
     have = {m.marker_id for m in video.markers}
@@ -162,13 +179,19 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
 
 
 def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
-                           poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True) -> tuple[VideoDetections, DrillRegistration]:
+                           poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True,
+                           search: bool = True) -> tuple[VideoDetections, DrillRegistration]:
     """Register ``video`` (:func:`.register_video_to_fluoro`), recover the missing tags where that registration predicts
     them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration).
+
+    A frame that shares no marker with fluoroscopy first has the missing tags searched for without a prediction
+    (:func:`search_missing_tags`); ``search`` False skips that (a caller that searched already).
 
     The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
     registration raises.
     """
+    if search and not _shares_a_marker(video, poses):
+        video = search_missing_tags(image, video, locator=locator, poses=poses)
     reg = register_video_to_fluoro(video, poses, marker_set, camera, joint=joint)
     if not _missing(video, poses, locator):
         return video, reg
@@ -226,15 +249,17 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     posed = {p.marker_id for p in in_use if p.converged}
     if previous_carm_from_drill is not None and not posed & {m.marker_id for m in video.markers}:
         video = recover_missing_tags(image, video, poses=in_use, marker_set=marker_set, carm_from_drill=previous_carm_from_drill, **recover)
+    if not _shares_a_marker(video, in_use):  # nothing to register from, nor to predict the missing tags: search for them
+        video = search_missing_tags(image, video, locator=calibration.locator, poses=in_use)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
     fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
-        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, **recover)
+        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=False, **recover)
         refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
-        video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, **recover)
+        video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, search=False, **recover)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
         poses = refinement.poses

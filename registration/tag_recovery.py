@@ -34,7 +34,7 @@ are refused, each with its reason.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -45,7 +45,8 @@ from .camera import PinholeCamera
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
 from .transforms import apply, invert
 
-__all__ = ["TagRecovery", "recover_tag", "predict_tag_corners", "dictionary_codes", "RECOVERED_CORNER_SIGMA_PX"]
+__all__ = ["TagRecovery", "CodeRead", "recover_tag", "fit_tag_edges", "read_code", "predict_tag_corners", "dictionary_codes",
+           "RECOVERED_CORNER_SIGMA_PX"]
 
 # A recovered tag's corners are noisier than a detected one's: up to one corner is an extrapolation of two
 # partly hidden edges. Measured against the twin's truth (tests/test_tag_recovery.py, benchmarks/tag_detection.py
@@ -107,6 +108,22 @@ def predict_tag_corners(*, carm_from_drill: NDArray[np.float64], carm_from_marke
     return camera.project(pts_d)
 
 
+def _percentile_over_samples(values: NDArray[np.float64], valid: NDArray[np.bool_], q: float) -> NDArray[np.float64]:
+    """``np.nanpercentile(values, q, axis=1)`` (linear interpolation) over the samples where ``valid`` (e, s), for
+    values (e, s, o); -inf where no sample is valid. Vectorised: nanpercentile loops over every (e, o) in Python."""
+    ordered = np.sort(np.where(valid[..., None], values, np.inf), axis=1)             # the invalid ones last
+    n = valid.sum(axis=1)[:, None]                                                    # (e, 1)
+    pos = (np.maximum(n, 1) - 1) * (q / 100.0)
+    lo = np.floor(pos).astype(int)
+    hi = np.minimum(lo + 1, np.maximum(n, 1) - 1)
+    shape = (ordered.shape[0], ordered.shape[2])
+    lo_v = np.take_along_axis(ordered, np.broadcast_to(lo, shape)[:, None, :], axis=1)[:, 0]
+    hi_v = np.take_along_axis(ordered, np.broadcast_to(hi, shape)[:, None, :], axis=1)[:, 0]
+    with np.errstate(invalid="ignore"):  # inf - inf where no sample is valid; replaced below
+        out = lo_v + (pos - lo) * (hi_v - lo_v)
+    return np.where(n > 0, out, -np.inf)
+
+
 def _box_mean(values: NDArray[np.float32], width: int) -> NDArray[np.float64]:
     """Means over ``width`` consecutive samples along the last axis (..., o) -> (..., o - width + 1)."""
     c = np.cumsum(np.concatenate([np.zeros(values.shape[:-1] + (1,)), values], axis=-1), axis=-1)
@@ -143,6 +160,23 @@ def recover_tag(
         raise ValueError(f"ArUco id {aruco_id} is not in {dictionary} (0-{len(codes) - 1})")
     if rivals is not None and any(not 0 <= int(r) < len(codes) for r in rivals):
         raise ValueError(f"rival ArUco ids {sorted(int(r) for r in rivals if not 0 <= int(r) < len(codes))} are not in {dictionary} (0-{len(codes) - 1})")
+    got = fit_tag_edges(gray, pred, tolerance_px=tolerance_px, samples=samples, step_px=step_px, min_edge_fraction=min_edge_fraction,
+                        min_contrast=min_contrast)
+    if not got.accepted:
+        return got
+    corners, frac_t = got.corners_px, got.edge_fraction
+    return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
+                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals)
+
+
+def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], *, tolerance_px: float = 8.0, samples: int = 48,
+                  step_px: float = 0.5, min_edge_fraction: float = 0.3, min_contrast: float = 30.0) -> TagRecovery:
+    """A tag's four border edges found near ``predicted_px`` (4, 2) and their corners, identity not judged (step 1 of
+    the module docstring): ``corners_px`` None with the reason when an edge is not found.
+
+    Shared by :func:`recover_tag` (a predicted tag) and :mod:`.tag_search` (a candidate outline).
+    """
+    pred = np.asarray(predicted_px, dtype=np.float64)
     side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
     if side.min() < 12.0:
         return TagRecovery(corners_px=None, reason=f"predicted tag too small ({side.min():.1f} px side)")
@@ -163,9 +197,7 @@ def recover_tag(
     # A high percentile over the edge's samples: a step must run along most of what is visible of the edge. A
     # sample clipped along most of its profile (a highlight over the border) shows nothing, and is not counted.
     blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
-    with np.errstate(all="ignore"):
-        edge_score = np.nanpercentile(np.where(blind[..., None], np.nan, contrast), 60, axis=1)  # (4, o')
-    edge_score = np.nan_to_num(edge_score, nan=-np.inf)
+    edge_score = _percentile_over_samples(contrast, ~blind, 60.0)                     # (4, o'), -inf where all are blind
     edge_score[:, ~in_tol] = -np.inf
     best = np.argmax(edge_score, axis=1)
     edge_contrast = edge_score[np.arange(4), best]
@@ -226,8 +258,8 @@ def recover_tag(
     corners = corners[0]
     if not crossed[0] or np.linalg.norm(corners - pred, axis=1).max() > 1.5 * tolerance_px:
         return TagRecovery(corners_px=None, reason=f"edges found but their corners lie over {1.5 * tolerance_px:.0f} px from the prediction", edge_fraction=frac_t)
-    return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
-                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals)
+    return TagRecovery(corners_px=corners, reason="", edge_fraction=frac_t)
+
 
 
 def _clip_cuts_step(profiles: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -263,10 +295,26 @@ def _levels_at(vals: NDArray[np.float64], offsets: NDArray[np.float64], pos: NDA
     return reduce(v, axis=2)
 
 
-def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
-            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8) -> TagRecovery:
-    """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
-    s = codes.shape[1]
+@dataclass(frozen=True, kw_only=True)
+class CodeRead:
+    """The code cells read through a tag's corners (:func:`read_code`).
+
+    bits : (s * s,) uint8, 1 = white, row by row as ``dictionary_codes`` holds them.
+    known : (s * s,) bool, the cells read (not saturated, beside a highlight, occluded or ambiguous).
+    reason : why the tag could not be read at all ("" when it was; ``bits`` and ``known`` are then empty).
+    """
+
+    bits: NDArray[np.uint8]
+    known: NDArray[np.bool_]
+    reason: str = ""
+
+
+def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_size: int, min_contrast: float = 30.0) -> CodeRead:
+    """Read the s x s code cells of the tag whose corners (4, 2) px (the first taken as the tag's top-left) are given,
+    with the rules of the module docstring (step 2): the white base around it, a black border, each cell judged
+    against the levels of both."""
+    s = code_size
+    none = CodeRead(bits=np.zeros(0, np.uint8), known=np.zeros(0, bool), reason="")
     n = s + 2  # cells across the tag, black border included
     grid = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], dtype=np.float32)
     h = cv2.getPerspectiveTransform(grid, corners.astype(np.float32))
@@ -279,7 +327,7 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
     img_pts = cv2.perspectiveTransform(pts.astype(np.float32), h).reshape(-1, 2)
     height, width = gray.shape
     if (img_pts.min(axis=0) < 0).any() or img_pts[:, 0].max() > width - 1 or img_pts[:, 1].max() > height - 1:
-        return TagRecovery(corners_px=None, reason="the tag's surroundings leave the frame", edge_fraction=edge_fraction)
+        return replace(none, reason="the tag's surroundings leave the frame")
     v = cv2.remap(gray, img_pts[:, 0].reshape(1, -1), img_pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR).reshape(len(idx), len(idx), 9).astype(np.float64)
     mean, vmax, vmin = v.mean(axis=2), v.max(axis=2), v.min(axis=2)
     r, c = np.meshgrid(idx, idx, indexing="ij")
@@ -289,8 +337,7 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
     white, black = float(np.median(mean[ring])), float(np.median(mean[border]))
     contrast = white - black
     if contrast < min_contrast:
-        return TagRecovery(corners_px=None, reason=f"no tag there: the border is not darker than its surroundings (contrast {contrast:.0f})",
-                           edge_fraction=edge_fraction)
+        return replace(none, reason=f"no tag there: the border is not darker than its surroundings (contrast {contrast:.0f})")
     mid = 0.5 * (white + black)
     unknown = (np.abs(mean - mid) < 0.2 * contrast) | (vmax - vmin > 0.5 * contrast)
     bit = mean > mid
@@ -301,10 +348,17 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
     unknown |= sat | (halo & bit)
     read_border = border & ~unknown
     if read_border.sum() < 10 or (~bit[read_border]).mean() < 0.75:
-        return TagRecovery(corners_px=None, reason=f"no tag border there: {int((~bit[read_border]).sum())} of {int(read_border.sum())} border cells read black",
-                           edge_fraction=edge_fraction)
-    known = ~unknown[code]
-    read = bit[code].astype(np.uint8)
+        return replace(none, reason=f"no tag border there: {int((~bit[read_border]).sum())} of {int(read_border.sum())} border cells read black")
+    return CodeRead(bits=bit[code].astype(np.uint8), known=~unknown[code])
+
+
+def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
+            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8) -> TagRecovery:
+    """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
+    got = read_code(gray, corners, code_size=codes.shape[1], min_contrast=min_contrast)
+    if got.reason:
+        return TagRecovery(corners_px=None, reason=got.reason, edge_fraction=edge_fraction)
+    known, read = got.known, got.bits
     flat = codes.reshape(len(codes), -1)
     agree = ((flat == read[None, :]) & known[None, :]).sum(axis=1)
     n_read = int(known.sum())

@@ -20,6 +20,7 @@ from .camera import PinholeCamera
 from .markers import MarkerSet
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
 from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, recover_tag
+from .tag_search import search_tags
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points"]
@@ -302,6 +303,30 @@ class VideoMarkerLocator:
                 if got.accepted:
                     found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
                     break
+        if not found:
+            return video
+        return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+
+    def search(self, image: NDArray[np.uint8], video: VideoDetections, marker_ids: Iterable[int]) -> VideoDetections:
+        """``video`` with the tags of ``marker_ids`` that it misses found where nothing predicts them: dark outlines
+        with a part hidden, of which ArUco made no candidate (:func:`.tag_search.search_tags`).
+
+        For a frame with no registration to predict from (:meth:`recover` needs one). Ids not in the marker set
+        and markers already in ``video`` are skipped. A found marker is flagged ``recovered``, its covariance
+        computed with ``RECOVERED_CORNER_SIGMA_PX``. Returns ``video`` itself when nothing was found.
+        """
+        have = {m.marker_id for m in video.markers}
+        todo = {int(i) for i in marker_ids} - have
+        if not todo:
+            return video
+        gray = _gray(image)
+        found: list[VideoMarker] = []
+        for name, per in self._specs.items():
+            wanted = [a for a, spec in per.items() if spec.marker_id in todo]
+            if not wanted:
+                continue
+            for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)]):
+                found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
         if not found:
             return video
         return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))

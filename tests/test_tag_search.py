@@ -1,0 +1,102 @@
+"""Tags ArUco made no candidate of, found with no prediction (``registration/tag_search.py``).
+
+The twin frame of ``test_tag_recovery.py`` (seed 5000, glove on): marker 2's tag has a gloved finger over a corner,
+ArUco loses it, and with only marker 2 posed in fluoroscopy the frame shares no marker with it, so there is no
+registration to predict the tag from. The search finds it from its bitten outline, within a pixel of the truth,
+and the frame registers; a drape with no tag, and ids not asked for, give nothing.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from tag_detection import _true_corners  # noqa: E402  (the twin's true corners, as the detection benchmark scores them)
+
+from drillnav.drivers.sim.degradations import CAMERA, Degradations
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.registration.errors import DrillnavError
+from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.marker_pose import register_markers
+from drillnav.registration.pipeline import LiveCalibration, register_with_recovery, track_frame
+from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX
+from drillnav.registration.tag_search import _quads_of_hull, search_tags
+from drillnav.registration.video_markers import VideoMarkerLocator
+from twin_frames import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin frames)
+
+SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
+
+
+@pytest.fixture(scope="module")
+def gloved():
+    return gloved_frame()
+
+
+def test_a_bitten_square_gives_back_its_hidden_corner():
+    # A 100 px square whose bottom-right corner a finger covers: a five-sided outline.
+    bitten = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 70.0], [70.0, 100.0], [0.0, 100.0]])
+    fill, quad = _quads_of_hull(bitten)[0]
+    assert fill == pytest.approx((100 * 100 - 0.5 * 30 * 30) / 100**2)
+    assert {tuple(np.round(c, 6)) for c in quad} == {(0.0, 0.0), (100.0, 0.0), (100.0, 100.0), (0.0, 100.0)}
+    # The same outline with the bite on another corner, listed from another vertex: the same square.
+    other = np.array([[100.0, 0.0], [100.0, 100.0], [0.0, 100.0], [0.0, 25.0], [25.0, 0.0]])
+    fill, quad = _quads_of_hull(other)[0]
+    assert {tuple(np.round(c, 6)) for c in quad} == {(0.0, 0.0), (100.0, 0.0), (100.0, 100.0), (0.0, 100.0)}
+
+
+def test_a_gloved_tag_is_found_with_no_prediction_within_a_pixel(gloved):
+    scene, pose, image, locator = gloved
+    truth = _true_corners(scene, pose)
+    video = locator.locate(image)
+    assert GLOVED in truth and GLOVED not in video.by_id(), "the glove no longer hides the tag from ArUco"
+    more = locator.search(image, video, scene.marker_set.ids)
+    marker = more.by_id()[GLOVED]
+    assert marker.recovered and marker.corner_sigma_px == RECOVERED_CORNER_SIGMA_PX
+    err = np.linalg.norm(marker.corners_px - truth[GLOVED], axis=1)
+    print(f"gloved tag found with no prediction: corners {np.round(err, 2)} px from the truth")
+    assert err.max() <= 1.0
+    # Nothing else was added, and nothing already found was touched.
+    assert set(more.by_id()) == set(video.by_id()) | {GLOVED}
+    assert all(more.by_id()[m.marker_id] is m for m in video.markers)
+    # Asked only for ids that are not in the frame: nothing, although the gloved tag's outline is a candidate.
+    absent = [i for i in range(250) if i not in truth]
+    assert search_tags(image if image.ndim == 2 else image[..., 1], dictionary="DICT_6X6_250", wanted=absent) == []
+
+
+def test_a_frame_that_shares_no_marker_with_fluoroscopy_registers_through_the_search(gloved):
+    scene, pose, image, locator = gloved
+    image_rng = np.random.default_rng([SEED, 1])
+    dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
+    only = tuple(p for p in register_markers(dets, list(scene.views.values()), scene.marker_set) if p.marker_id == GLOVED)
+    assert only and only[0].converged
+    video = locator.locate(image)
+    common = dict(locator=locator, camera=scene.calibrated_camera, poses=only, marker_set=scene.marker_set)
+    with pytest.raises(DrillnavError, match="only 0 marker"):
+        register_with_recovery(image, video, search=False, **common)
+    found, reg = register_with_recovery(image, video, **common)
+    assert found.by_id()[GLOVED].recovered and reg.used_ids == (GLOVED,)
+    entry = scene.corridor_entry_carm_mm
+    axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
+    error = float(np.linalg.norm(axis.closest_point(entry) - TRUE_DRILL_AXIS_CAMERA.transformed(pose).closest_point(entry)))
+    print(f"one marker, found by the search: {error:.2f} mm at the corridor entry")
+    assert error < 5.0
+    # The live frame path does the same.
+    calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
+    fa = track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set)
+    assert fa.video.by_id()[GLOVED].recovered and fa.registration.used_ids == (GLOVED,)
+
+
+def test_a_drape_with_no_tag_gives_nothing():
+    """Every camera degradation on (blood specks, glare, blur, compression), the drill pointed far past the markers."""
+    for seed in (3000, 3001):
+        scene = make_scene(seed=seed, render=False, degradations=Degradations.parse(",".join(CAMERA)))
+        rng = np.random.default_rng([seed, 4])
+        away = scene.drill_pose_towards(rng)
+        away[:3, 3] += 5000.0 * away[:3, 2]
+        frame = scene.render_camera(rng, carm_from_drill=away)
+        locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=range(250))
+        video = locator.locate(frame)
+        assert not video.markers
+        assert locator.search(frame, video, range(250)) is video
