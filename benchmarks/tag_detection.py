@@ -18,9 +18,13 @@ corners' RMS error.
 
 The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
 :mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
-false ones, their corners' RMS error and the search's time per frame.
+false ones, their corners' RMS error and the search's time per frame. And tags cut by the frame's edge (at least
+60 % of their area in it), which ArUco never finds, looked for where they are predicted (on what of them is in the
+frame): tags recovered, false ones, and their corners' RMS error, the corners outside the frame included. Markers
+placed as a surgeon places them (``--conditions surgeon_markers``) spread wider than the camera's field.
 
     .venv/bin/python benchmarks/tag_detection.py --seeds 3 --poses 4
+    .venv/bin/python benchmarks/tag_detection.py --seeds 31 --poses 3 --first-seed 5000 --conditions surgeon_markers
 
 Prints a table and one JSON line.
 """
@@ -35,13 +39,14 @@ import numpy as np
 
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
 from drillnav.drivers.sim.scene import make_scene
-from drillnav.registration.tag_recovery import predict_tag_corners
+from drillnav.registration.tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_markers import VideoMarkerLocator
 
 
-def _true_corners(scene, carm_from_drill) -> dict[int, np.ndarray]:
-    """Marker id -> (4, 2) true tag corners (OpenCV order) for the tags fully inside the frame."""
+def _true_corners(scene, carm_from_drill, *, partly: bool = False) -> dict[int, np.ndarray]:
+    """Marker id -> (4, 2) true tag corners (OpenCV order) for the tags fully inside the frame (``partly``: instead
+    those cut by the frame's edge with at least ``MIN_SHARE_IN_FRAME`` of their area in it)."""
     cam = scene.true_camera
     out = {}
     for marker_id, pose in scene.camera_from_marker(carm_from_drill).items():
@@ -49,7 +54,8 @@ def _true_corners(scene, carm_from_drill) -> dict[int, np.ndarray]:
         if np.any(pts[:, 2] <= 1.0):
             continue
         px = cam.project(pts)
-        if np.all((px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)):
+        whole = np.all((px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height))
+        if whole != partly and (not partly or share_in_frame(px, width=cam.width, height=cam.height) >= MIN_SHARE_IN_FRAME):
             out[marker_id] = px
     return out
 
@@ -74,11 +80,13 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
     conditions = conditions if conditions is not None else ["none", *CAMERA, "all"]
     rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0,
                  "recovered": 0, "recovered_false": 0, "sq_err_recovered": 0.0,
-                 "searched": 0, "searched_false": 0, "sq_err_searched": 0.0, "search_seconds": 0.0} for c in conditions}
+                 "searched": 0, "searched_false": 0, "sq_err_searched": 0.0, "search_seconds": 0.0,
+                 "partly_visible": 0, "partly": 0, "partly_false": 0, "sq_err_partly": 0.0} for c in conditions}
     for seed in range(first_seed, first_seed + seeds):
         for cond in conditions:
             # "all": every camera degradation (the fluoroscopy ones do not touch the camera frame).
-            deg = Degradations.parse(",".join(CAMERA) if cond == "all" else cond)
+            # "all": every camera degradation; "a+b": several settings at once (e.g. all+surgeon_markers).
+            deg = Degradations.parse(",".join(n for part in cond.split("+") for n in (CAMERA if part == "all" else [part])))
             scene = make_scene(seed=seed, render=False, degradations=deg)
             locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
             pose_rng, camera_rng = np.random.default_rng([seed, 2]), np.random.default_rng([seed, 3])
@@ -108,6 +116,13 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                 searched = locator.search(frame, det, scene.marker_set.ids)
                 r["search_seconds"] += time.perf_counter() - t0
                 _score_recovered(searched, truth, r, "searched")
+                # Tags cut by the frame's edge (ArUco never finds them), looked for where they are predicted.
+                cut = _true_corners(scene, pose, partly=True)
+                r["partly_visible"] += len(cut)
+                predicted_cut = {i: predict_tag_corners(carm_from_drill=pose, carm_from_marker=scene.carm_from_marker[i],
+                                                        tag_corners_marker_mm=scene.marker_set.by_id(i).tag_corners_mm(), camera=scene.calibrated_camera)
+                                 for i in cut}
+                _score_recovered(locator.recover(frame, det, {i: c for i, c in predicted_cut.items() if c is not None}), cut, r, "partly")
                 _score_recovered(locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}), truth, r, "recovered")
     out = {}
     for c, r in rows.items():
@@ -120,6 +135,8 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
             "searched": r["searched"], "searched_false": r["searched_false"],
             "searched_corner_rms_px": float(np.sqrt(r["sq_err_searched"] / max(4 * r["searched"], 1))),
             "search_ms_per_frame": 1000.0 * r["search_seconds"] / max(r["frames"], 1),
+            "partly_visible": r["partly_visible"], "partly_recovered": r["partly"], "partly_false": r["partly_false"],
+            "partly_corner_rms_px": float(np.sqrt(r["sq_err_partly"] / max(4 * r["partly"], 1))),
         }
     return out
 
@@ -145,14 +162,18 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--poses", type=int, default=4)
     ap.add_argument("--first-seed", type=int, default=3000)
+    ap.add_argument("--conditions", default=None, help="comma-separated: none, all (every camera degradation) or degradation names, "
+                    "'+' joining several (all+surgeon_markers); default: none, each camera degradation alone, all")
     args = ap.parse_args()
-    res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed)
+    res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed, conditions=args.conditions.split(",") if args.conditions else None)
     print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8} "
-          f"{'recovered':>9} {'false':>5} {'rms px':>6} {'searched':>8} {'false':>5} {'rms px':>6} {'ms':>5}")
+          f"{'recovered':>9} {'false':>5} {'rms px':>6} {'searched':>8} {'false':>5} {'rms px':>6} {'ms':>5} {'cut by edge':>11} {'recovered':>9} "
+          f"{'false':>5} {'rms px':>6}")
     for c, r in res.items():
         print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f} "
               f"{r['recovered']:>9} {r['recovered_false']:>5} {r['recovered_corner_rms_px']:>6.3f} "
-              f"{r['searched']:>8} {r['searched_false']:>5} {r['searched_corner_rms_px']:>6.3f} {r['search_ms_per_frame']:>5.1f}")
+              f"{r['searched']:>8} {r['searched_false']:>5} {r['searched_corner_rms_px']:>6.3f} {r['search_ms_per_frame']:>5.1f} "
+              f"{r['partly_visible']:>11} {r['partly_recovered']:>9} {r['partly_false']:>5} {r['partly_corner_rms_px']:>6.3f}")
     empty = false_ids_without_tags(seeds=args.seeds, first_seed=args.first_seed)
     print(f"false ids on {args.seeds} tag-free frames (every camera degradation): {empty}")
     print(json.dumps({"seeds": args.seeds, "poses": args.poses, "first_seed": args.first_seed, "false_ids_tag_free_frames": empty,
@@ -163,7 +184,10 @@ def main() -> None:
                                             "recovered_corner_rms_px": round(r["recovered_corner_rms_px"], 4),
                                             "searched_tags": r["searched"], "searched_false": r["searched_false"],
                                             "searched_corner_rms_px": round(r["searched_corner_rms_px"], 4),
-                                            "search_ms_per_frame": round(r["search_ms_per_frame"], 2)} for c, r in res.items()}}))
+                                            "search_ms_per_frame": round(r["search_ms_per_frame"], 2),
+                                            "partly_in_frame_tags": r["partly_visible"], "partly_recovered": r["partly_recovered"],
+                                            "partly_false": r["partly_false"],
+                                            "partly_corner_rms_px": round(r["partly_corner_rms_px"], 4)} for c, r in res.items()}}))
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert
 from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
-from .tag_recovery import predict_tag_corners
+from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
@@ -171,8 +171,8 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
         starts = (refined[p.marker_id],) if p.marker_id in refined else (p.carm_from_marker, p.mirror_carm_from_marker)
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
                  for t in starts if t is not None]
-        # Only tags wholly in the frame: a marker out of view costs nothing more.
-        cands = [c for c in cands if c is not None and (c >= 0).all() and (c[:, 0] <= camera.width - 1).all() and (c[:, 1] <= camera.height - 1).all()]
+        # Only tags mostly in the frame (a tag cut by its edge is fitted on what is in it): a marker out of view costs nothing more.
+        cands = [c for c in cands if c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME]
         if cands:
             expected[p.marker_id] = np.stack(cands)
     return locator.recover(image, video, expected) if expected else video

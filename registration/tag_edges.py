@@ -32,6 +32,8 @@ class EdgeProfiles:
     values : (n, 4, s, o) grey levels (bilinear), float32.
     length_px : (n, 4) edge lengths.
     inside : (n,) whether every sample point of the tag lies in the frame.
+    sample_inside : (n, 4, s) whether every point of that sample's profile lies in the frame (a tag partly out of
+        the frame is sampled with the border replicated; its samples outside say nothing).
     """
 
     base_px: NDArray[np.float64]
@@ -40,6 +42,7 @@ class EdgeProfiles:
     values: NDArray[np.float32]
     length_px: NDArray[np.float64]
     inside: NDArray[np.bool_]
+    sample_inside: NDArray[np.bool_]
 
 
 def edge_profiles(gray: NDArray[np.float32], quads: NDArray[np.float64], *, along: NDArray[np.float64], offsets_px: NDArray[np.float64]) -> EdgeProfiles:
@@ -53,12 +56,13 @@ def edge_profiles(gray: NDArray[np.float32], quads: NDArray[np.float64], *, alon
     normal = np.stack([d[..., 1], -d[..., 0]], axis=2) / np.maximum(length, 1e-9)[..., None]
     base = quads[:, :, None, :] + along[None, None, :, None] * d[:, :, None, :]      # (n, 4, s, 2)
     pts = base[:, :, :, None, :] + offsets_px[None, None, None, :, None] * normal[:, :, None, None, :]
-    flat_all = pts.reshape(n, -1, 2)
-    inside = (flat_all.min(axis=1) >= 0).all(axis=1) & (flat_all[..., 0].max(axis=1) <= w - 1) & (flat_all[..., 1].max(axis=1) <= h - 1)
+    in_frame = (pts[..., 0] >= 0) & (pts[..., 1] >= 0) & (pts[..., 0] <= w - 1) & (pts[..., 1] <= h - 1)  # (n, 4, s, o)
+    sample_inside = in_frame.all(axis=3)
+    inside = sample_inside.reshape(n, -1).all(axis=1)
     flat = pts.reshape(-1, len(offsets_px), 2).astype(np.float32)
     values = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return EdgeProfiles(base_px=base, normal=normal, offsets_px=np.asarray(offsets_px, dtype=np.float64),
-                        values=values.reshape(n, 4, len(along), len(offsets_px)), length_px=length, inside=inside)
+                        values=values.reshape(n, 4, len(along), len(offsets_px)), length_px=length, inside=inside, sample_inside=sample_inside)
 
 
 def step_positions(values: NDArray[np.float32], offsets_px: NDArray[np.float64], *, falling_inwards: bool = False) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:

@@ -46,12 +46,16 @@ from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positio
 from .transforms import apply, invert
 
 __all__ = ["TagRecovery", "CodeRead", "recover_tag", "fit_tag_edges", "read_code", "predict_tag_corners", "dictionary_codes",
-           "RECOVERED_CORNER_SIGMA_PX"]
+           "share_in_frame", "RECOVERED_CORNER_SIGMA_PX", "MIN_SHARE_IN_FRAME"]
 
 # A recovered tag's corners are noisier than a detected one's: up to one corner is an extrapolation of two
 # partly hidden edges. Measured against the twin's truth (tests/test_tag_recovery.py, benchmarks/tag_detection.py
 # --recover): see docs/identity_and_error.md, "Tags recovered from their prediction".
 RECOVERED_CORNER_SIGMA_PX = 0.5
+
+# A tag cut by the frame's edge is looked for where it is predicted when at least this share of it is in the frame:
+# its edges and code cells in the frame are used, a corner outside is the crossing of two edges' lines.
+MIN_SHARE_IN_FRAME = 0.6
 
 # A cell whose mean grey level is at least this is clipped (8 bits): a highlight's plateau at 255. A tag's white
 # cells can lie near 250 in a bright field (the print is whiter than the base), and noise lifts single pixels.
@@ -124,6 +128,17 @@ def _percentile_over_samples(values: NDArray[np.float64], valid: NDArray[np.bool
     return np.where(n > 0, out, -np.inf)
 
 
+def share_in_frame(corners_px: NDArray[np.float64], *, width: int, height: int) -> float:
+    """The share of a tag's area (corners (4, 2) px, OpenCV order) that lies in a width x height frame (a 10 x 10
+    grid of points bilinear over the quadrilateral)."""
+    q = np.asarray(corners_px, dtype=np.float64)
+    u = (np.arange(10) + 0.5) / 10
+    a, b = np.meshgrid(u, u, indexing="ij")
+    a, b = a.reshape(-1, 1), b.reshape(-1, 1)
+    pts = (1 - a) * (1 - b) * q[0] + a * (1 - b) * q[1] + a * b * q[2] + (1 - a) * b * q[3]
+    return float(np.mean((pts[:, 0] >= 0) & (pts[:, 1] >= 0) & (pts[:, 0] <= width - 1) & (pts[:, 1] <= height - 1)))
+
+
 def _box_mean(values: NDArray[np.float32], width: int) -> NDArray[np.float64]:
     """Means over ``width`` consecutive samples along the last axis (..., o) -> (..., o - width + 1)."""
     c = np.cumsum(np.concatenate([np.zeros(values.shape[:-1] + (1,)), values], axis=-1), axis=-1)
@@ -146,11 +161,14 @@ def recover_tag(
     min_contrast: float = 30.0,
     rivals: Sequence[int] | None = None,
     min_cells_among_rivals: int = 8,
+    partial: bool = False,
 ) -> TagRecovery:
     """Find the tag ``aruco_id`` of ``dictionary`` near its predicted corners (4, 2) px (OpenCV order) in ``gray`` (H, W) float32.
 
-    ``tolerance_px``: how far (px, along each edge's normal) an edge may lie from its prediction. See the module
-    docstring for the method and the acceptance rule.
+    ``tolerance_px``: how far (px, along each edge's normal) an edge may lie from its prediction. ``partial``: a
+    tag partly out of the frame is looked for on what of it is in the frame (its cells outside are unread; a
+    corner outside is the crossing of its edges' lines). See the module docstring for the method and the
+    acceptance rule.
     """
     pred = np.asarray(predicted_px, dtype=np.float64)
     if pred.shape != (4, 2) or not np.isfinite(pred).all():
@@ -161,18 +179,21 @@ def recover_tag(
     if rivals is not None and any(not 0 <= int(r) < len(codes) for r in rivals):
         raise ValueError(f"rival ArUco ids {sorted(int(r) for r in rivals if not 0 <= int(r) < len(codes))} are not in {dictionary} (0-{len(codes) - 1})")
     got = fit_tag_edges(gray, pred, tolerance_px=tolerance_px, samples=samples, step_px=step_px, min_edge_fraction=min_edge_fraction,
-                        min_contrast=min_contrast)
+                        min_contrast=min_contrast, partial=partial)
     if not got.accepted:
         return got
     corners, frac_t = got.corners_px, got.edge_fraction
     return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
-                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals)
+                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals, partial=partial)
 
 
 def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], *, tolerance_px: float = 8.0, samples: int = 48,
-                  step_px: float = 0.5, min_edge_fraction: float = 0.3, min_contrast: float = 30.0) -> TagRecovery:
+                  step_px: float = 0.5, min_edge_fraction: float = 0.3, min_contrast: float = 30.0, partial: bool = False) -> TagRecovery:
     """A tag's four border edges found near ``predicted_px`` (4, 2) and their corners, identity not judged (step 1 of
     the module docstring): ``corners_px`` None with the reason when an edge is not found.
+
+    ``partial``: a tag partly out of the frame is fitted on what of each edge is in it (each edge still needs
+    ``min_edge_fraction`` of its samples); otherwise such a tag is refused.
 
     Shared by :func:`recover_tag` (a predicted tag) and :mod:`.tag_search` (a candidate outline).
     """
@@ -186,8 +207,9 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     offsets = np.arange(-reach, reach + step_px / 2, step_px)
     along = np.linspace(0.06, 0.94, samples)
     prof = edge_profiles(gray, pred[None], along=along, offsets_px=offsets)
-    if not prof.inside[0]:
+    if not prof.inside[0] and not partial:
         return TagRecovery(corners_px=None, reason="the predicted tag's edges leave the frame")
+    seen = prof.sample_inside[0]                                                      # (4, s)
     vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
     box = _box_mean(vals, gap)                                                        # mean of gap samples starting at each offset
     # Candidate step between offsets[j + gap - 1] and offsets[j + gap]: outside mean minus inside mean.
@@ -196,7 +218,7 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     in_tol = np.abs(cand) <= tolerance_px
     # A high percentile over the edge's samples: a step must run along most of what is visible of the edge. A
     # sample clipped along most of its profile (a highlight over the border) shows nothing, and is not counted.
-    blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
+    blind = ((vals >= SATURATED).mean(axis=-1) > 0.5) | ~seen                         # (4, s); out of the frame: blind too
     edge_score = _percentile_over_samples(contrast, ~blind, 60.0)                     # (4, o'), -inf where all are blind
     edge_score[:, ~in_tol] = -np.inf
     best = np.argmax(edge_score, axis=1)
@@ -224,7 +246,7 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     lv_out = _levels_at(vals, offsets, pos, (1.5, 3.0))
     lv_in = _levels_at(vals, offsets, pos, (-3.0, -1.5))
     step_contrast = lv_out - lv_in
-    clean = stepped & (step_contrast >= 0.5 * edge_contrast[:, None]) & (step_contrast <= 2.0 * edge_contrast[:, None] + 20.0)
+    clean = seen & stepped & (step_contrast >= 0.5 * edge_contrast[:, None]) & (step_contrast <= 2.0 * edge_contrast[:, None] + 20.0)
     # A clipped black side is a highlight over the border. A clipped bright side (an over-exposed base) is harmless
     # unless the clip cuts into the upper half of the step's gradient, which pulls the step inwards.
     clean &= (_levels_at(vals, offsets, pos, (-3.5, -1.0), reduce=np.max) < SATURATED) & ~_clip_cuts_step(sub_vals)
@@ -309,10 +331,12 @@ class CodeRead:
     reason: str = ""
 
 
-def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_size: int, min_contrast: float = 30.0) -> CodeRead:
+def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_size: int, min_contrast: float = 30.0,
+              partial: bool = False) -> CodeRead:
     """Read the s x s code cells of the tag whose corners (4, 2) px (the first taken as the tag's top-left) are given,
     with the rules of the module docstring (step 2): the white base around it, a black border, each cell judged
-    against the levels of both."""
+    against the levels of both. ``partial``: a tag partly out of the frame is read on its cells in the frame (the
+    others unread; the levels from the base and border cells in the frame); otherwise it is refused."""
     s = code_size
     none = CodeRead(bits=np.zeros(0, np.uint8), known=np.zeros(0, bool), reason="")
     n = s + 2  # cells across the tag, black border included
@@ -326,14 +350,19 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
     pts = np.stack([np.broadcast_to(cu, (len(idx), len(idx), 3, 3)), np.broadcast_to(cv, (len(idx), len(idx), 3, 3))], axis=-1).reshape(-1, 1, 2)
     img_pts = cv2.perspectiveTransform(pts.astype(np.float32), h).reshape(-1, 2)
     height, width = gray.shape
-    if (img_pts.min(axis=0) < 0).any() or img_pts[:, 0].max() > width - 1 or img_pts[:, 1].max() > height - 1:
+    in_frame = ((img_pts >= 0).all(axis=1) & (img_pts[:, 0] <= width - 1) & (img_pts[:, 1] <= height - 1)).reshape(len(idx), len(idx), 9).all(axis=2)
+    if not in_frame.all() and not partial:
         return replace(none, reason="the tag's surroundings leave the frame")
-    v = cv2.remap(gray, img_pts[:, 0].reshape(1, -1), img_pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR).reshape(len(idx), len(idx), 9).astype(np.float64)
+    v = cv2.remap(gray, img_pts[:, 0].reshape(1, -1), img_pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE).reshape(len(idx), len(idx), 9).astype(np.float64)
     mean, vmax, vmin = v.mean(axis=2), v.max(axis=2), v.min(axis=2)
     r, c = np.meshgrid(idx, idx, indexing="ij")
     ring = ((r == -1) | (r == n)) ^ ((c == -1) | (c == n))      # the base beside each edge, not the diagonal corners
     border = (((r == 0) | (r == n - 1)) & (c >= 0) & (c < n)) | (((c == 0) | (c == n - 1)) & (r >= 0) & (r < n))
     code = (r >= 1) & (r <= s) & (c >= 1) & (c <= s)
+    ring, border = ring & in_frame, border & in_frame
+    if ring.sum() < 6 or border.sum() < 10:
+        return replace(none, reason=f"too little of the tag's surroundings in the frame ({int(ring.sum())} base and {int(border.sum())} border cells)")
     white, black = float(np.median(mean[ring])), float(np.median(mean[border]))
     contrast = white - black
     if contrast < min_contrast:
@@ -345,7 +374,7 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
     # light, so its halo can lift a black cell to white but never darken a white one (a black read there still counts).
     sat = mean >= SATURATED
     halo = cv2.dilate(sat.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    unknown |= sat | (halo & bit)
+    unknown |= sat | (halo & bit) | ~in_frame
     read_border = border & ~unknown
     if read_border.sum() < 10 or (~bit[read_border]).mean() < 0.75:
         return replace(none, reason=f"no tag border there: {int((~bit[read_border]).sum())} of {int(read_border.sum())} border cells read black")
@@ -353,9 +382,9 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
 
 
 def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
-            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8) -> TagRecovery:
+            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8, partial: bool = False) -> TagRecovery:
     """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
-    got = read_code(gray, corners, code_size=codes.shape[1], min_contrast=min_contrast)
+    got = read_code(gray, corners, code_size=codes.shape[1], min_contrast=min_contrast, partial=partial)
     if got.reason:
         return TagRecovery(corners_px=None, reason=got.reason, edge_fraction=edge_fraction)
     known, read = got.known, got.bits

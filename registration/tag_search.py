@@ -100,14 +100,19 @@ def _quads_of_hull(hull: NDArray[np.float64]) -> list[tuple[float, NDArray[np.fl
     return [(float(fill[i]), quads[i]) for i in order if ok[i]]
 
 
-def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_candidates: int = 24) -> list[NDArray[np.float64]]:
+def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_candidates: int = 24, half_above_px: int = 800,
+                   exclude_px: Sequence[NDArray[np.float64]] = ()) -> list[NDArray[np.float64]]:
     """Candidate tag outlines (4, 2) px, full resolution, OpenCV winding, in a grayscale frame (H, W) uint8: four-sided
-    dark regions and dark regions with a bite (see the module docstring), at most ``max_candidates``, largest first."""
+    dark regions and dark regions with a bite (see the module docstring), at most ``max_candidates``, largest first.
+
+    A frame wider than ``half_above_px`` is thresholded at half resolution (as the locator detects), a smaller one
+    at its own. A candidate whose centre lies on one of ``exclude_px`` ((4, 2) corners of tags already found) is
+    left out before the count."""
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"expected a grayscale (H, W) uint8 frame, got {gray.dtype} {gray.shape}")
     h, w = gray.shape
-    small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    sx, sy = w / (w // 2), h / (h // 2)
+    small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA) if w > half_above_px else gray
+    sx, sy = w / small.shape[1], h / small.shape[0]
     found: list[tuple[float, NDArray[np.float64]]] = []
     for window in THRESHOLD_WINDOWS:
         dark = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, window, 7)
@@ -116,7 +121,7 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
         for contour in contours:
             hull = cv2.convexHull(contour)
             perimeter = cv2.arcLength(hull, True)
-            if perimeter < 4 * min_side_px / 2:
+            if perimeter < 4 * min_side_px / sx:
                 continue
             poly = cv2.approxPolyDP(hull, 0.02 * perimeter, True).reshape(-1, 2).astype(np.float64)
             if not 4 <= len(poly) <= MAX_HULL_SIDES:
@@ -130,8 +135,12 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
                     continue
                 found.append((abs(_signed_area(quad)), quad))
     found.sort(key=lambda t: -t[0])
+    taken = [np.asarray(q, dtype=np.float32).reshape(-1, 1, 2) for q in exclude_px]
     kept: list[NDArray[np.float64]] = []
     for _, quad in found:
+        centre = tuple(float(c) for c in quad.mean(axis=0))
+        if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):
+            continue
         if all(np.abs(np.sort(quad.sum(axis=1)) - np.sort(k.sum(axis=1))).max() > 6.0 for k in kept):
             kept.append(quad)
         if len(kept) == max_candidates:
@@ -165,12 +174,13 @@ def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, di
 
 
 def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[int], exclude_px: Sequence[NDArray[np.float64]] = (),
-                tolerance_px: float = 6.0) -> list[FoundTag]:
+                tolerance_px: float = 6.0, half_above_px: int = 800) -> list[FoundTag]:
     """The tags of ``wanted`` (ArUco ids of ``dictionary``) found in a grayscale frame (H, W) uint8 without a prediction.
 
     ``exclude_px``: (4, 2) corners of tags already found; a candidate whose centre lies on one is skipped.
     ``tolerance_px``: how far each fitted edge may lie from the candidate's outline (the outline comes from a
-    half-resolution threshold, and a bite's corner from two edges' extensions). One tag per id.
+    half-resolution threshold, and a bite's corner from two edges' extensions). ``half_above_px``: see
+    :func:`tag_candidates`. One tag per id.
     """
     wanted = [int(i) for i in wanted]
     if not wanted:
@@ -179,9 +189,9 @@ def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[in
     code_size = dictionary_codes(dictionary).shape[1]
     taken = [np.asarray(q, dtype=np.float32).reshape(-1, 1, 2) for q in exclude_px]
     found: dict[int, FoundTag] = {}
-    for quad in tag_candidates(gray):
+    for quad in tag_candidates(gray, half_above_px=half_above_px, exclude_px=exclude_px):
         centre = tuple(float(c) for c in quad.mean(axis=0))
-        if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):
+        if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):  # a tag found from an earlier candidate
             continue
         # A cheap look first: the outline's border reads black against a white base (a bite costs a few cells).
         if read_code(gray_f, quad, code_size=code_size).reason:

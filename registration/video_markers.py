@@ -282,7 +282,8 @@ class VideoMarkerLocator:
         """``video`` with the missing markers found where they are expected (:func:`.tag_recovery.recover_tag`).
 
         expected_corners_px : {marker id: (4, 2) or (k, 4, 2)} predicted tag corners (OpenCV order), k candidates
-            (e.g. a marker's two mirror poses in fluoroscopy): the first one verified is taken.
+            (e.g. a marker's two mirror poses in fluoroscopy): the first one verified is taken. A tag partly out of
+            the frame is looked for on what of it is in the frame (``recover_tag(partial=True)``).
         Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
         nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
         ``RECOVERED_CORNER_SIGMA_PX``.
@@ -299,7 +300,7 @@ class VideoMarkerLocator:
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
             for pred in np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2):
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name])
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True)
                 if got.accepted:
                     found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
                     break
@@ -325,7 +326,8 @@ class VideoMarkerLocator:
             wanted = [a for a, spec in per.items() if spec.marker_id in todo]
             if not wanted:
                 continue
-            for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)]):
+            for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)],
+                                   half_above_px=self.detect_below_px):
                 found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
         if not found:
             return video

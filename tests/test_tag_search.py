@@ -24,7 +24,7 @@ from drillnav.registration.pipeline import LiveCalibration, register_with_recove
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX
 from drillnav.registration.tag_search import _quads_of_hull, search_tags
 from drillnav.registration.video_markers import VideoMarkerLocator
-from twin_frames import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin frames)
+from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
 

@@ -1,7 +1,8 @@
 """Twin calibration images shared by the tests: checkerboard views and the drill-axis jig turning about an axis.
 
 Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera; a frame of
-field markers where the jig should be, through the twin's marker renderer.
+field markers where the jig should be, through the twin's marker renderer; and an operating-room twin frame with a
+gloved tag (:func:`gloved_frame`).
 
 A full-frame render costs about a second of CPU, and several tests (in one pytest process) ask for the same views: each
 set is rendered once per process and handed out read-only, so a test that drew on a shared frame would fail loudly.
@@ -12,10 +13,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drillnav.drivers.sim.camera import checkerboard_texture, render_plane
+from drillnav.drivers.sim.degradations import Degradations
+from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.drill_axis import jig_board, jig_size_mm
 from drillnav.registration.line import Line3D
 from drillnav.registration.transforms import make_transform
+from drillnav.registration.video_markers import VideoMarkerLocator
 
 BOARD_SIZE_MM = (12 * 25.0, 9 * 25.0)  # 9x6 inner corners of 25 mm + 1 + a white square each side
 
@@ -91,3 +95,18 @@ def field_marker_frame(camera: PinholeCamera, ids=(3, 7, 12, 20), *, distance_mm
     spacing = 60.0
     poses = {i: make_transform(tilt, [(k - (len(ids) - 1) / 2) * spacing, 0.0, distance_mm]) for k, i in enumerate(ids)}
     return render_markers(camera=camera, camera_from_marker=poses, markers=markers, rng=np.random.default_rng(seed), glare=False)
+
+
+GLOVED_SEED, GLOVED_MARKER = 5000, 2
+
+
+def gloved_frame():
+    """Twin seed 5000 (inlet+outlet, the glove on), its first freehand frame, in which a gloved finger hides a corner
+    of marker 2's tag and ArUco loses it: (scene, true carm_from_drill, frame (read-only), locator)."""
+    scene = make_scene(seed=GLOVED_SEED, views="inlet,outlet", render=False, degradations=Degradations(glove=True))
+    rng = np.random.default_rng(GLOVED_SEED)
+    pose = scene.drill_pose_towards(rng, offset_mm=5.0, tilt_deg=5.0)
+    image = scene.render_camera(rng, carm_from_drill=pose)
+    image.setflags(write=False)
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    return scene, pose, image, locator
