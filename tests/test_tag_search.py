@@ -100,3 +100,26 @@ def test_a_drape_with_no_tag_gives_nothing():
         video = locator.locate(frame)
         assert not video.markers
         assert locator.search(frame, video, range(250)) is video
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.skipif(not (DATA / "aruco").is_dir(), reason="../shared/data/aruco is not present")
+def test_a_real_photograph_gives_no_id_that_is_not_in_it():
+    """A real photograph of a ChArUco board (DICT_6X6_250, ids 0-16): its 17 black chessboard squares and 17 tags
+    are dark four-sided outlines; asked for every other id of the dictionary, the search names none."""
+    import cv2
+
+    from drillnav.schemas.calibration import camera_calibration_from_json
+    from drillnav.schemas.camera_yaml import from_opencv_yaml
+
+    image = cv2.imread(str(DATA / "aruco" / "choriginal.jpg"))
+    camera = camera_calibration_from_json(from_opencv_yaml((DATA / "aruco" / "tutorial_camera_charuco.yml").read_text()))
+    locator = VideoMarkerLocator(camera=camera, marker_ids=range(250), tag_size_mm=20.0)
+    video = locator.locate(image)
+    assert sorted(video.by_id()) == list(range(17))
+    assert locator.search(image, video, range(17, 250)) is video
+    # Nothing excluded: the 17 tags in the photograph are candidates too, and none is read as an absent id.
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    assert search_tags(gray, dictionary="DICT_6X6_250", wanted=range(17, 250)) == []
