@@ -38,7 +38,7 @@ from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, rende
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.pipeline import register_with_recovery
+from drillnav.registration.pipeline import register_with_recovery, search_missing_tags
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
 
@@ -155,10 +155,12 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                 try:
                                     video, reg = _register(scene, image, placed, chosen, joint=method == "joint", recover=recover)
                                 except DrillnavError as exc:
-                                    video = placed
                                     reason = str(exc).split(" (")[0].split(";")[0]
                                     refusals.setdefault(key, Counter())[reason] += 1
                                     if diagnose is not None and method == "joint":
+                                        # What the product had when it refused: the detector's tags and those the search
+                                        # with no prediction found (register_with_recovery's first step).
+                                        video = search_missing_tags(image, placed, locator=_locator(scene), poses=chosen) if recover else placed
                                         diagnose.append(_case(scene, carm_from_drill, video, {n: dets[n] for n in vs}, chosen, subset,
                                                               seed=seed, pair=pair, reason=str(exc)))
                                     continue
