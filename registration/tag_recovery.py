@@ -283,7 +283,6 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     return TagRecovery(corners_px=corners, reason="", edge_fraction=frac_t)
 
 
-
 def _clip_cuts_step(profiles: NDArray[np.float64]) -> NDArray[np.bool_]:
     """(4, s, w) profiles (offsets growing outwards, bright outside) -> (4, s): the clip at the bright side cuts
     into the upper half of the step's gradient, where :func:`.tag_edges.step_positions` takes the step from.

@@ -187,11 +187,11 @@ def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[in
         return []
     gray_f = gray.astype(np.float32)
     code_size = dictionary_codes(dictionary).shape[1]
-    taken = [np.asarray(q, dtype=np.float32).reshape(-1, 1, 2) for q in exclude_px]
+    taken: list[NDArray[np.float32]] = []  # tags found from earlier candidates (``exclude_px`` are left out by tag_candidates)
     found: dict[int, FoundTag] = {}
     for quad in tag_candidates(gray, half_above_px=half_above_px, exclude_px=exclude_px):
         centre = tuple(float(c) for c in quad.mean(axis=0))
-        if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):  # a tag found from an earlier candidate
+        if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):
             continue
         # A cheap look first: the outline's border reads black against a white base (a bite costs a few cells).
         if read_code(gray_f, quad, code_size=code_size).reason:

@@ -9,6 +9,7 @@ and the frame registers; a drape with no tag, and ids not asked for, give nothin
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -62,7 +63,8 @@ def test_a_gloved_tag_is_found_with_no_prediction_within_a_pixel(gloved):
     assert all(more.by_id()[m.marker_id] is m for m in video.markers)
     # Asked only for ids that are not in the frame: nothing, although the gloved tag's outline is a candidate.
     absent = [i for i in range(250) if i not in truth]
-    assert search_tags(image if image.ndim == 2 else image[..., 1], dictionary="DICT_6X6_250", wanted=absent) == []
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    assert search_tags(gray, dictionary="DICT_6X6_250", wanted=absent) == []
 
 
 def test_a_frame_that_shares_no_marker_with_fluoroscopy_registers_through_the_search(gloved):
@@ -109,8 +111,6 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 def test_a_real_photograph_gives_no_id_that_is_not_in_it():
     """A real photograph of a ChArUco board (DICT_6X6_250, ids 0-16): its 17 black chessboard squares and 17 tags
     are dark four-sided outlines; asked for every other id of the dictionary, the search names none."""
-    import cv2
-
     from drillnav.schemas.calibration import camera_calibration_from_json
     from drillnav.schemas.camera_yaml import from_opencv_yaml
 
