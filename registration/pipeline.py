@@ -30,7 +30,9 @@ registration predicts them, and the frame registered again with them (:func:`reg
 every tag pays nothing. A frame that shares no marker with fluoroscopy has no registration to predict from: its
 missing tags are searched for without a prediction (:func:`search_missing_tags`, :mod:`.tag_search`: tag outlines
 with a part hidden, of which ArUco made no candidate), about 50 ms on a 1280x720 frame, paid only by a frame that
-would otherwise be refused.
+would otherwise be refused. So is a tag that the registration puts in the frame but that the recovery did not find
+where predicted (a registration on one or two markers can be off by more than the recovery's reach); that search is
+made by the joint solve's frames only, never on the tracking path.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_fram
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "predict_missing_tags", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 
@@ -157,17 +159,27 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
                          carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> VideoDetections:
     """``video`` (what ``locator`` found in ``image``) with the missing tags of markers posed in fluoroscopy recovered.
 
-    Each missing marker's tag is predicted through ``camera`` from ``carm_from_drill`` (4, 4) and its pose in C:
-    ``carm_from_marker[id]`` (a registration's refined pose) when given, else its fluoroscopy pose and mirror pose
-    (when fluoroscopy left it open); then looked for there and its identity verified
+    Each missing marker's tag is predicted through ``camera`` from ``carm_from_drill`` (4, 4) and its pose in C
+    (:func:`predict_missing_tags`); then looked for there and its identity verified
     (:meth:`.VideoMarkerLocator.recover`). Returns ``video`` itself when nothing is missing or nothing was recovered.
     """
-    missing = _missing(video, poses, locator)
-    if not missing:
-        return video
+    expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=carm_from_drill,
+                                    carm_from_marker=carm_from_marker)
+    return locator.recover(image, video, expected) if expected else video
+
+
+def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...],
+                         marker_set: MarkerSet, carm_from_drill: NDArray[np.float64],
+                         carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> dict[int, NDArray[np.float64]]:
+    """{marker id: (K, 4, 2) predicted tag corners, px}: the markers posed in fluoroscopy that ``video`` misses and
+    whose tag the registration ``carm_from_drill`` (4, 4) puts mostly in the camera's frame.
+
+    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else its
+    fluoroscopy pose and mirror pose (K = 2 when fluoroscopy left it open).
+    """
     refined = carm_from_marker or {}
     expected = {}
-    for p in missing:
+    for p in _missing(video, poses, locator):
         starts = (refined[p.marker_id],) if p.marker_id in refined else (p.carm_from_marker, p.mirror_carm_from_marker)
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
                  for t in starts if t is not None]
@@ -175,7 +187,7 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
         cands = [c for c in cands if c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME]
         if cands:
             expected[p.marker_id] = np.stack(cands)
-    return locator.recover(image, video, expected) if expected else video
+    return expected
 
 
 def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
@@ -185,18 +197,27 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration).
 
     A frame that shares no marker with fluoroscopy first has the missing tags searched for without a prediction
-    (:func:`search_missing_tags`); ``search`` False skips that (a caller that searched already).
+    (:func:`search_missing_tags`); a tag that the registration puts in the frame but that the recovery did not find
+    where predicted is searched for the same way afterwards. ``search`` False skips both (a caller that searched
+    already, or the tracking path, which cannot spend ~50 ms a frame).
 
     The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
     registration raises.
     """
-    if search and not _shares_a_marker(video, poses):
+    searched = search and not _shares_a_marker(video, poses)
+    if searched:
         video = search_missing_tags(image, video, locator=locator, poses=poses)
     reg = register_video_to_fluoro(video, poses, marker_set, camera, joint=joint)
-    if not _missing(video, poses, locator):
+    expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                    carm_from_marker=reg.carm_from_marker)
+    if not expected:
         return video, reg
-    more = recover_missing_tags(image, video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                carm_from_marker=reg.carm_from_marker)
+    more = locator.recover(image, video, expected)
+    left = set(expected) - {m.marker_id for m in more.markers}
+    if search and not searched and left:
+        # Predicted in the frame but not where the prediction put it (a registration on one or two markers is
+        # off by more than the recovery's tolerance): searched for with no prediction, in the whole frame.
+        more = locator.search(image, more, left)
     if more is video:
         return video, reg
     return more, register_video_to_fluoro(more, poses, marker_set, camera, joint=joint)
@@ -249,14 +270,15 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     posed = {p.marker_id for p in in_use if p.converged}
     if previous_carm_from_drill is not None and not posed & {m.marker_id for m in video.markers}:
         video = recover_missing_tags(image, video, poses=in_use, marker_set=marker_set, carm_from_drill=previous_carm_from_drill, **recover)
-    if not _shares_a_marker(video, in_use):  # nothing to register from, nor to predict the missing tags: search for them
+    searched = not _shares_a_marker(video, in_use)
+    if searched:  # nothing to register from, nor to predict the missing tags: search for them
         video = search_missing_tags(image, video, locator=calibration.locator, poses=in_use)
     if not video.markers:
         raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
     fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
-        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=False, **recover)
+        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=not searched, **recover)
         refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
         video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, search=False, **recover)
