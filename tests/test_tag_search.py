@@ -161,3 +161,7 @@ def test_a_tag_the_prediction_misplaces_is_searched_for_in_the_whole_frame():
     assert OFF_MARKER in reg.used_ids and error < 2.0
     # Only posed markers whose tag the registration puts in the frame are searched for: nothing else was added.
     assert set(found.by_id()) - set(before.by_id()) == {OFF_MARKER}
+    # The live frame path does the same on a frame that runs the joint solve (the first of a registration).
+    calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
+    fa = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set)
+    assert OFF_MARKER in fa.video.by_id() and OFF_MARKER in fa.registration.used_ids
