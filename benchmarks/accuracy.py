@@ -146,7 +146,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                 for m in ms:
                     for subset in itertools.combinations(sorted(scene.carm_from_marker), m):
                         chosen = tuple(p for p in marker_poses if p.marker_id in subset)
-                        for carm_from_drill, seen, image in frames:
+                        for pose_index, (carm_from_drill, seen, image) in enumerate(frames):
                             # M markers placed: the camera sees only those (else it would claim the others' BBs).
                             placed = replace(seen, markers=tuple(v for v in seen.markers if v.marker_id in subset))
                             for method in methods:
@@ -171,7 +171,8 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                 pos = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
                                 rows.setdefault(key, []).append((pos, axis.angle_deg(true_axis), pe.position90_mm, pe.angle90_deg, pe.reliable))
                                 if diagnose is not None and method == "joint":
-                                    diagnose.append({"seed": seed, "pair": pair, "views": list(vs), "M": m, "used": len(reg.used_ids), "pos_mm": pos,
+                                    diagnose.append({"seed": seed, "pair": pair, "views": list(vs), "M": m, "subset": subset, "pose": pose_index,
+                                                     "used": len(reg.used_ids), "pos_mm": pos,
                                                      "ang_deg": axis.angle_deg(true_axis), "b90_mm": pe.position90_mm, "b90_deg": pe.angle90_deg,
                                                      "reliable": pe.reliable})
         print(f"[{deg.label()}] seed {seed} done", file=sys.stderr, flush=True)
@@ -498,7 +499,8 @@ def main() -> None:
                     "its field, markers identified per view, markers in common, the reason; with --per-degradation, instead a table of "
                     "where markers are lost per degradation setting (no registrations)")
     ap.add_argument("--first-seed", type=int, default=3000)
-    ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running)")
+    ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running; with --diagnose, "
+                    "every joint registration and refusal by seed, pair and views, to compare two runs one by one)")
     ap.add_argument("--ms", type=int, nargs="+", default=[3, 4, 5], help="numbers of markers M to study (default 3 4 5)")
     ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
                     "registration's prediction (the product before it; for comparison)")
@@ -527,7 +529,10 @@ def main() -> None:
     per_deg = per_degradation(seeds, poses, patient=patient, shots=shots, all_result=result if degradations.label() == "all" else None) if args.per_degradation else None
     minutes = (time.perf_counter() - t0) / 60.0
     if args.save:
-        args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses}))
+        # With --diagnose, "cases" names each joint registration (seed, pair, views, M, error, bounds) and each refusal, so
+        # two runs can be compared registration by registration.
+        args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
+                                            "cases": cases}))
     if not args.no_docs and not args.quick:
         command = f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
         write_docs(summary, result, command, degradations, per_deg, minutes)
