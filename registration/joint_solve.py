@@ -366,35 +366,32 @@ def _crowding(observations: dict, carm_from_marker: dict, marker_set: MarkerSet)
     """{marker id: per observation (view), (N,) each observed BB's crowding}: the distance from its projection to
     the nearest other BB's (of any marker solved, observed or not) over the sum of their projected radii.
 
-    Under 1 the two BBs' shadows overlap, and a blob detector returns them merged or each pulled towards the
-    other: a biased centre, not noise (an edge-on marker in a lateral view lays its BBs along a line).
+    Under about 1 the two BBs' shadows overlap or touch, and a blob detector returns them merged or each pulled
+    towards the other: a biased centre, not noise (a marker seen steeply in a lateral view lays its BBs close).
     """
+    ids = list(observations)
+    designs = {i: marker_set.by_id(i) for i in ids}
+    in_c = {i: apply(carm_from_marker[i], designs[i].bb_centers_mm) for i in ids}
+    starts = np.cumsum([0] + [len(in_c[i]) for i in ids])
+    every_c = np.concatenate([in_c[i] for i in ids])
+    every_r = 0.5 * np.concatenate([designs[i].bb_diameters_mm for i in ids])
     per_view: dict[int, tuple] = {}
-    for i, obs in observations.items():
-        for view, _, _ in obs:
-            if id(view) in per_view:
-                continue
-            focal_px = float(view.decompose()[0][0, 0])
-            centres, radii = [], []
-            for j in observations:
-                d = marker_set.by_id(j)
-                pts = apply(carm_from_marker[j], d.bb_centers_mm)
-                centres.append(view.project(pts))
-                radii.append(0.5 * d.bb_diameters_mm * focal_px / view.depth_mm(pts))
-            per_view[id(view)] = (np.concatenate(centres), np.concatenate(radii))
     out = {}
-    for i, obs in observations.items():
-        design_pts = marker_set.by_id(i).bb_centers_mm
+    for k, i in enumerate(ids):
         rows = []
-        for view, obj, _ in obs:
-            centres, radii = per_view[id(view)]
-            own_c = view.project(apply(carm_from_marker[i], np.asarray(obj)))
-            own_r = 0.5 * marker_set.by_id(i).bb_diameters_mm[[int(np.argmin(np.linalg.norm(design_pts - o, axis=1))) for o in np.asarray(obj)]]
-            own_r = own_r * float(view.decompose()[0][0, 0]) / view.depth_mm(apply(carm_from_marker[i], np.asarray(obj)))
-            dist = np.linalg.norm(own_c[:, None, :] - centres[None, :, :], axis=2)
-            ratio = dist / (own_r[:, None] + radii[None, :])
-            ratio[dist < 1e-6] = np.inf  # itself
-            rows.append(ratio.min(axis=1))
+        design_pts = designs[i].bb_centers_mm
+        for view, obj, _ in observations[i]:
+            if id(view) not in per_view:
+                intrinsics, source_from_carm = view.decompose()
+                depth = every_c @ source_from_carm[2, :3] + source_from_carm[2, 3]
+                centres = view.project(every_c)
+                radii = every_r * intrinsics[0, 0] / depth
+                near = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2) / (radii[:, None] + radii[None, :])
+                np.fill_diagonal(near, np.inf)
+                per_view[id(view)] = near.min(axis=1)
+            # Each observed BB is one of the design's (the rows of ``obj`` are design centres).
+            index = np.argmin(np.linalg.norm(np.asarray(obj, dtype=np.float64)[:, None, :] - design_pts[None, :, :], axis=2), axis=1)
+            rows.append(per_view[id(view)][starts[k] + index])
         out[i] = tuple(rows)
     return out
 
