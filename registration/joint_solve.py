@@ -179,7 +179,9 @@ def joint_solve(
     ``bb_common_sigma_px``, ``bb_scale_sigma_px``: the shift (per axis) and scale shared by a tag's four corners /
     by one marker's BBs in one view (see :data:`CORNER_COMMON_PER_SIGMA`); each group is whitened with them, so
     the estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot
-    show.
+    show. ``crowded_bbs``: a BB whose shadow overlaps or nearly touches another's (:func:`_crowding`, at each
+    round's starting poses) is charged its detector's pull as extra noise (:data:`CROWDED_BB_PX`); False charges
+    it like any BB.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
