@@ -19,7 +19,8 @@ from numpy.typing import NDArray
 from .camera import PinholeCamera
 from .markers import MarkerSet
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
-from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, recover_tag
+from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, recover_tag
+from .tag_square_fit import SquareFit, fit_square_to_edges
 from .tag_search import search_tags
 from .transforms import make_transform
 
@@ -300,13 +301,20 @@ class VideoMarkerLocator:
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
             for pred in np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2):
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True)
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True,
+                                  square=lambda steps, spec=spec, pred=pred: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if got.accepted:
                     found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
                     break
         if not found:
             return video
         return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+
+    def _square_fit(self, steps: BorderSteps, *, spec: _TagSpec, predicted_px: NDArray[np.float64]) -> SquareFit | None:
+        """A tag with one edge hidden placed by its pose fitted to the other three edges' steps, with this camera and the
+        tag's size (:func:`.tag_square_fit.fit_square_to_edges`); refused past ``SQUARE_FIT_MAX_CORNER_SIGMA_PX``."""
+        return fit_square_to_edges(steps.points_px, steps.kept, camera=self.camera, object_points_mm=spec.object_points, predicted_px=predicted_px,
+                                   max_corner_sigma_px=SQUARE_FIT_MAX_CORNER_SIGMA_PX)
 
     def search(self, image: NDArray[np.uint8], video: VideoDetections, marker_ids: Iterable[int]) -> VideoDetections:
         """``video`` with the tags of ``marker_ids`` that it misses found where nothing predicts them: dark outlines
