@@ -19,7 +19,8 @@ intensifier's distortion: :data:`CORNER_COMMON_PER_SIGMA`, :data:`BB_COMMON_SIGM
 Jacobian is block sparse (a BB residual depends on its own marker's 6
 parameters only, a corner on its marker's, the drill's and the intrinsics) and
 small, so all its forward differences are taken in one batched evaluation. A marker whose normalised residuals stand out is rejected, named,
-and the solve repeated without it.
+and the solve repeated without it; one that still misfits, where that rule cannot act, is voted out by the others
+when they fit without it, and a misfit that remains widens the covariance by the fit's reduced chi-square.
 
 Rotations are perturbed about the centroid of the markers (drill) or the marker
 centre (markers), which keeps rotation and translation nearly uncorrelated and
@@ -99,7 +100,8 @@ class JointSolution:
         ``pivot_carm_mm`` (see :func:`perturb_about`), marginal over the markers and intrinsics; the BBs' and
         the corners' noise are each re-estimated from their own residuals (variance components), the
         intrinsics' prior keeps its stated size.
-    marker_chi : {marker id: RMS normalised residual} (about 1 for a marker that fits its noise model).
+    marker_chi : {marker id: RMS normalised residual} (about 1 for a marker that fits its noise model). When one
+        is over the solve's ``outlier_chi`` at the end, ``covariance_drill`` is scaled by ``reduced_chi2``.
     """
 
     carm_from_drill: NDArray[np.float64]
@@ -172,7 +174,10 @@ def joint_solve(
     before that, single BBs farther than ``bb_outlier_chi`` sigmas from their projection are dropped, and a tag
     whose corners fit over ``outlier_chi`` sigmas RMS and 3 times the other tags' median, or whose marker stands
     out, is tried without each of its corners in turn: the one corner whose absence makes the tag fit is left
-    out (``dropped_corners``) and the marker kept on the other three.
+    out (``dropped_corners``) and the marker kept on the other three. When the worst marker still fits beyond
+    ``outlier_chi`` and at least three remain, the one without which every other marker fits within it (when
+    exactly one is such) is rejected, even below ``min_markers``; if a marker still fits beyond it at the end, the
+    drill covariance is multiplied by ``reduced_chi2``.
     ``focal_rel_sigma``, ``principal_sigma_px``, ``distortion_sigma``: the camera priors; None (the default) takes
     what ``camera.uncertainty`` states, never under the defaults (``registration/camera_uncertainty.py``).
     ``corner_common_per_sigma``, ``corner_scale_per_sigma`` (in units of the corners' independent noise) and
@@ -212,7 +217,7 @@ def joint_solve(
         for i in ids for k, o in enumerate(observations[i]))
     if clean:
         return sol
-    trimmed = False
+    trimmed = consensus_tried = False
     dropped: dict[int, tuple[int, ...]] = {}
     known: JointSolution | None = None  # the robust fit of this round's inputs, when the corner check already made it
     while True:
@@ -251,10 +256,44 @@ def joint_solve(
             if sum(len(o[1]) for i in ids for o in kept[i]) < sum(len(o[1]) for i in ids for o in observations[i]):
                 observations = kept
                 continue
+        if not consensus_tried and chi[worst] > outlier_chi and len(ids) >= 3:
+            # The worst marker fits beyond its noise but the rule above cannot take it: it would leave fewer than
+            # min_markers, or it dragged the others into misfitting with it, so it does not stand out 3 times
+            # their median. The markers then vote (once): the one without which all the others fit within their
+            # noise, when exactly one is, is rejected.
+            consensus_tried = True
+            odd = _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi)
+            if odd is not None:
+                rejected.append(odd)
+                ids = [i for i in ids if i != odd]
+                continue
         break
     # The final fit is plain least squares: its Jacobian gives the covariance.
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
-    return JointSolution(**{**sol.__dict__, "rejected_ids": tuple(rejected), "dropped_corners": {i: k for i, k in dropped.items() if i in ids and k}})
+    covariance = sol.covariance_drill
+    if max(sol.marker_chi.values()) > outlier_chi:
+        # A marker still fits far beyond its noise: one the rejection could not take (no marker may go below
+        # ``min_markers``), or one that dragged the others into misfitting with it. The residuals call this
+        # solution wrong, so its covariance takes the whole fit's a-posteriori variance factor (its reduced
+        # chi-square): the bound says so, and the axis is flagged unreliable rather than confidently off.
+        covariance = covariance * max(1.0, sol.reduced_chi2)
+    return JointSolution(**{**sol.__dict__, "covariance_drill": covariance, "rejected_ids": tuple(rejected),
+                            "dropped_corners": {i: k for i, k in dropped.items() if i in ids and k}})
+
+
+def _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi: float) -> int | None:
+    """The marker without which every other marker fits within its noise (RMS normalised residual at most
+    ``outlier_chi``), when exactly one marker is such; None otherwise. One robust fit (soft L1) per marker left out,
+    from ``drill0``, ``markers0``."""
+    clean = []
+    for i in ids:
+        try:
+            sol = _solve([j for j in ids if j != i], observations, corners_px, drill0, markers0, *args, loss="soft_l1")
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if max(sol.marker_chi.values()) <= outlier_chi:
+            clean.append(i)
+    return clean[0] if len(clean) == 1 else None
 
 
 def _stands_out(chi: dict[int, float], marker_id: int, ids, outlier_chi: float) -> bool:
