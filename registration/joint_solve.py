@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import block_diag
@@ -42,7 +43,9 @@ from .camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY, camera_priors
 from .carm import intensifier_shift_px
 from .errors import MarkersNotFound
 from .markers import MarkerSet
-from .transforms import apply, make_transform
+from .transforms import apply, invert, make_transform
+from .video_claims import drill_from_marker
+from .video_markers import tag_object_points
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
            "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
@@ -175,7 +178,7 @@ def joint_solve(
     whose corners fit over ``outlier_chi`` sigmas RMS and 3 times the other tags' median, or whose marker stands
     out, is tried without each of its corners in turn: the one corner whose absence makes the tag fit is left
     out (``dropped_corners``) and the marker kept on the other three. When the worst marker still fits beyond
-    ``outlier_chi`` and at least three remain, the one without which every other marker fits within it (when
+    ``outlier_chi`` and at least two remain, the one without which every other marker fits within it (when
     exactly one is such) is rejected, even below ``min_markers``; if a marker still fits beyond it at the end, the
     drill covariance is multiplied by ``reduced_chi2``.
     ``focal_rel_sigma``, ``principal_sigma_px``, ``distortion_sigma``: the camera priors; None (the default) takes
@@ -194,7 +197,9 @@ def joint_solve(
     rejected: list[int] = []
     drill0 = np.asarray(carm_from_drill0, dtype=np.float64)
     markers0 = {i: np.asarray(carm_from_marker0[i], dtype=np.float64) for i in ids}
+    given = dict(markers0)  # the starting poses as given (each marker's own fluoroscopy pose), for the vote
     observations = {i: tuple(observations[i]) for i in ids}
+    untrimmed = observations
     stated = camera_priors(camera.uncertainty)  # the calibration's statement, never under a typical calibration's error
     focal_rel_sigma = stated.focal_rel if focal_rel_sigma is None else focal_rel_sigma
     principal_sigma_px = stated.principal_px if principal_sigma_px is None else principal_sigma_px
@@ -256,16 +261,22 @@ def joint_solve(
             if sum(len(o[1]) for i in ids for o in kept[i]) < sum(len(o[1]) for i in ids for o in observations[i]):
                 observations = kept
                 continue
-        if not consensus_tried and chi[worst] > outlier_chi and len(ids) >= 3:
+        if not consensus_tried and chi[worst] > outlier_chi and len(ids) >= 2:
             # The worst marker fits beyond its noise but the rule above cannot take it: it would leave fewer than
             # min_markers, or it dragged the others into misfitting with it, so it does not stand out 3 times
             # their median. The markers then vote (once): the one without which all the others fit within their
-            # noise, when exactly one is, is rejected.
+            # noise, when exactly one is, is rejected. With two markers the vote asks whether each fits alone:
+            # one whose own BBs and tag fit no pose (its rings in two views disagree) goes; two that each fit
+            # alone but not together stay, since neither can be told from the other.
             consensus_tried = True
-            odd = _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi)
+            odd = _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi, given=given)
             if odd is not None:
-                rejected.append(odd)
-                ids = [i for i in ids if i != odd]
+                rejected.append(odd[0])
+                ids = [i for i in ids if i != odd[0]]
+                known = odd[1]  # the others' fit without it: the next round starts there, not where it dragged them
+                # The single BBs were trimmed against the fit it dragged: the others get theirs back, and are trimmed anew.
+                observations, trimmed = {i: untrimmed[i] for i in ids}, False
+                known = _solve(ids, observations, corners_px, known.carm_from_drill, known.carm_from_marker, *args, loss="soft_l1")
                 continue
         break
     # The final fit is plain least squares: its Jacobian gives the covariance.
@@ -281,19 +292,47 @@ def joint_solve(
                             "dropped_corners": {i: k for i, k in dropped.items() if i in ids and k}})
 
 
-def _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi: float) -> int | None:
+def _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_chi: float, *,
+                 given: dict[int, NDArray[np.float64]]) -> tuple[int, JointSolution] | None:
     """The marker without which every other marker fits within its noise (RMS normalised residual at most
-    ``outlier_chi``), when exactly one marker is such; None otherwise. One robust fit (soft L1) per marker left out,
-    from ``drill0``, ``markers0``."""
-    clean = []
+    ``outlier_chi``), when exactly one marker is such, with the others' fit without it; None otherwise. One robust
+    fit (soft L1) per marker left out, from ``drill0``, ``markers0``; a single marker left is also fitted from its
+    given start ``given[id]`` (its fluoroscopy pose) with the drill its tag puts there, since the joint fit may
+    have dragged it far."""
+    clean: list[tuple[int, JointSolution]] = []
     for i in ids:
-        try:
-            sol = _solve([j for j in ids if j != i], observations, corners_px, drill0, markers0, *args, loss="soft_l1")
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        if max(sol.marker_chi.values()) <= outlier_chi:
-            clean.append(i)
+        rest = [j for j in ids if j != i]
+        starts = [(drill0, markers0)]
+        if len(rest) == 1:
+            drill = _drill_from_tag(given[rest[0]], corners_px[rest[0]], marker_set=args[0], camera=args[1], marker_id=rest[0])
+            if drill is not None:
+                starts.append((drill, {**markers0, rest[0]: given[rest[0]]}))
+        for drill, markers in starts:
+            try:
+                sol = _solve(rest, observations, corners_px, drill, markers, *args, loss="soft_l1")
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            if max(sol.marker_chi.values()) <= outlier_chi:
+                clean.append((i, sol))
+                break
     return clean[0] if len(clean) == 1 else None
+
+
+def _drill_from_tag(carm_from_marker: NDArray[np.float64], corners_px: NDArray[np.float64], *, marker_set: MarkerSet, camera: PinholeCamera,
+                    marker_id: int) -> NDArray[np.float64] | None:
+    """``carm_from_drill`` (4, 4) that puts the marker's tag, at ``carm_from_marker`` (4, 4), on its corners (4, 2) px
+    (planar PnP, the better of its two solutions); None when a corner was left out."""
+    corners = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
+    if not np.all(np.isfinite(corners)):
+        return None
+    design = marker_set.by_id(marker_id)
+    _, rvecs, tvecs, errs = cv2.solvePnPGeneric(tag_object_points(design.tag_size_mm), corners, camera.camera_matrix, camera.distortion,
+                                                flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    if not len(rvecs):
+        return None
+    best = int(np.argmin(np.asarray(errs).ravel()))
+    camera_from_tag = make_transform(cv2.Rodrigues(rvecs[best])[0], tvecs[best].ravel())
+    return carm_from_marker @ invert(drill_from_marker(camera_from_tag, design.tag_center_mm))
 
 
 def _stands_out(chi: dict[int, float], marker_id: int, ids, outlier_chi: float) -> bool:

@@ -200,18 +200,29 @@ def register_markers(
     return tuple(out)
 
 
-def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3):
+def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3,
+              slide_px: NDArray[np.float64] | None = None):
     """The design BBs (N, 3) and blob centres (N, 2) a pose explains in a view, after the best common shift.
 
     The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole
     projected pattern in another view: each (design BB, blob) pair proposes a shift, the one that matches
     most BBs wins. None when fewer than ``min_bbs`` match.
+
+    slide_px : (2,) the farthest the pattern may slide along one image direction (px, in either sense), on
+        top of ``search_px`` across it: the image in this view of the pose's depth uncertainty along another
+        view's beam (an epipolar line). None: ``search_px`` in every direction.
     """
     if len(blobs_px) < min_bbs:
         return None
     pred = view.project(apply(carm_from_marker, design_bbs_mm))
     shifts = (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2)
-    shifts = shifts[np.hypot(shifts[:, 0], shifts[:, 1]) <= search_px]
+    if slide_px is None:
+        shifts = shifts[np.hypot(shifts[:, 0], shifts[:, 1]) <= search_px]
+    else:
+        reach = float(np.linalg.norm(slide_px))
+        along = shifts @ (np.asarray(slide_px, dtype=np.float64) / max(reach, 1e-9))
+        across = np.sqrt(np.maximum(np.sum(shifts * shifts, axis=1) - along * along, 0.0))
+        shifts = shifts[(across <= search_px) & (np.abs(along) <= reach + search_px)]
     if not len(shifts):
         return None
     d = np.linalg.norm(pred[None, :, None, :] + shifts[:, None, None, :] - blobs_px[None, None], axis=3)  # (S, N, B)

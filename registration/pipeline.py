@@ -49,7 +49,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert
-from .video_fluoro import RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
+from .video_fluoro import HORN_MIN_MARKERS, RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
 from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
 from .video_markers import VideoDetections, VideoMarkerLocator
 
@@ -57,6 +57,9 @@ __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", 
            "refinement_due", "recover_missing_tags", "predict_missing_tags", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
+# How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
+# markers, on the recovery's 8 px grid (48 tries at most, 1-8 ms each, paid only by a tag not found where predicted).
+WEAK_REACH_PX = 24.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -210,9 +213,18 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     reg = register_video_to_fluoro(video, poses, marker_set, camera, joint=joint)
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
+    if reg.mirror_carm_from_drill is not None:
+        # One view left the constellation's mirror open (a registration on one or two markers): the missing tags
+        # are looked for where either solution puts them, so the one the frame bears out brings the markers that settle it.
+        mirrored = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                        carm_from_drill=reg.mirror_carm_from_drill)
+        expected = {i: np.concatenate([c for c in (expected.get(i), mirrored.get(i)) if c is not None]) for i in expected.keys() | mirrored.keys()}
     if not expected:
         return video, reg
-    more = locator.recover(image, video, expected)
+    # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
+    # the operating-room twin); a frame that may search (the joint solve's) also tries the prediction shifted.
+    weak = search and len(reg.used_ids) < HORN_MIN_MARKERS
+    more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0)
     left = set(expected) - {m.marker_id for m in more.markers}
     if search and not searched and left:
         # Predicted in the frame but not where the prediction put it (a registration on one or two markers is

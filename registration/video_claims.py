@@ -27,7 +27,7 @@ from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
 
-__all__ = ["drill_from_marker", "fit_constellation", "claim_from_video"]
+__all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video"]
 
 # After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
 # the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
@@ -36,6 +36,12 @@ SEARCH_PX = 30.0
 # degraded twin), where the cross-view claim's 2.5 px lost markers; 3 BBs on one common shift within a
 # 30 px search still do not happen by chance among a view's few dozen blobs.
 TOL_PX = 3.5
+# Anchors seen in one view only fix the constellation's depth along that view's beam poorly: a marker of 4
+# BBs in low dose can sit 10-15 mm off along it (seed 6301, measured). In another view the prediction then
+# slides along the image of that beam, so the claim searches this far along it (either sense), asking for
+# SLID_MIN_BBS BBs on one shift when the shift goes past SEARCH_PX.
+SLIDE_MM = 25.0
+SLID_MIN_BBS = 4
 
 
 def drill_from_marker(camera_from_tag: NDArray[np.float64], tag_center_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -51,6 +57,16 @@ def fit_constellation(anchors: dict[int, tuple], drill_from_marker_: dict[int, N
     drill_from_marker_ : {marker id: (4, 4)} from the camera.
     starts : candidate ``carm_from_drill`` (4, 4); the best fit over all of them wins (a single marker's
         planar pose has a mirror solution, so both are tried).
+    """
+    return constellation_fits(anchors, drill_from_marker_, starts)[0]
+
+
+def constellation_fits(anchors: dict[int, tuple], drill_from_marker_: dict[int, NDArray[np.float64]],
+                       starts: list[NDArray[np.float64]]) -> list[tuple[NDArray[np.float64], float]]:
+    """The fits of :func:`fit_constellation` from the two starts that fit best as they are, best first.
+
+    Anchors in one view only may fit both a solution and its mirror as well (a single marker's planar
+    ambiguity); the caller settles which with what else it knows (another view's blobs).
     """
     pts, img, proj = [], [], []
     for i, obs in anchors.items():
@@ -73,14 +89,12 @@ def fit_constellation(anchors: dict[int, tuple], drill_from_marker_: dict[int, N
     # Refine only the two starts that fit best as they are (the right one and its mirror, typically).
     xs = [np.concatenate(to_rotvec(start)) for start in starts]
     xs = sorted(xs, key=rms)[:2]
-    best = None
+    fits = []
     for x0 in xs:
         # Soft L1 beyond 2 px: one anchor identified wrongly must not drag the constellation.
         sol = least_squares(residual, x0, loss="soft_l1", f_scale=2.0, max_nfev=100)
-        fit = rms(sol.x)
-        if best is None or fit < best[1]:
-            best = (from_rotvec(sol.x[:3], sol.x[3:]), fit)
-    return best
+        fits.append((from_rotvec(sol.x[:3], sol.x[3:]), rms(sol.x)))
+    return sorted(fits, key=lambda f: f[1])
 
 
 def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...], marker_set: MarkerSet, *,
@@ -113,31 +127,20 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
         for carm_from_marker in (p.carm_from_marker, p.mirror_carm_from_marker):
             if carm_from_marker is not None:
                 starts.append(carm_from_marker @ invert(d_from_m[i]))
-    carm_from_drill, rms = fit_constellation(anchors, d_from_m, starts)
-    if rms > max_fit_px:
+    # Anchors seen in one view fit the constellation and its mirror alike: the fit whose prediction the other
+    # views' blobs bear out (most BBs claimed; the better fit on a tie) is taken.
+    anchor_views = {id(o[0]): o[0] for obs in anchors.values() for o in obs}
+    depth_view = next(iter(anchor_views.values())) if len(anchor_views) == 1 else None
+    best = None
+    for carm_from_drill, rms in constellation_fits(anchors, d_from_m, starts):
+        if rms > max_fit_px:
+            continue
+        got = _claims(carm_from_drill, views=views, by_id=by_id, d_from_m=d_from_m, marker_set=marker_set, min_bbs=min_bbs, depth_view=depth_view)
+        if best is None or _count(got) > _count(best[1]):
+            best = (carm_from_drill, got)
+    if best is None:
         return marker_poses
-    # Each view's free blobs are handed out greedily, the marker that explains most BBs first, so that
-    # two predicted markers never share a blob.
-    free = {k: np.asarray(b, dtype=np.float64).reshape(-1, 2) for k, (_, b) in views.items()}
-    claims: dict[int, list] = {}
-    while True:
-        best = None
-        for i in sorted(d_from_m):
-            seen = {id(o[0]) for o in by_id[i].observations} if i in by_id else set()
-            seen |= {id(c[0]) for c in claims.get(i, [])}
-            pose = carm_from_drill @ d_from_m[i]
-            for k, (view, _) in views.items():
-                if k in seen or len(free[k]) < min_bbs:
-                    continue
-                found = claim_bbs(view, pose, marker_set.by_id(i).bb_centers_mm, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
-                if found is not None and (best is None or len(found[0]) > len(best[3])):
-                    best = (i, k, view, *found)
-        if best is None:
-            break
-        i, k, view, obj, img = best
-        claims.setdefault(i, []).append((view, obj, img))
-        taken = np.any(np.all(np.isclose(free[k][:, None, :], img[None, :, :]), axis=2), axis=1)
-        free[k] = free[k][~taken]
+    carm_from_drill, claims = best
     if not claims:
         return marker_poses
     out = []
@@ -150,3 +153,50 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
                               n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,
                               observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs))
     return tuple(out)
+
+
+def _count(claims: dict[int, list]) -> int:
+    return sum(len(c[1]) for per in claims.values() for c in per)
+
+
+def _slide_px(view, depth_view, position_carm_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(2,) the image in ``view`` of ``SLIDE_MM`` along ``depth_view``'s ray through ``position_carm_mm`` (3,), px."""
+    ray = position_carm_mm - depth_view.source_position_mm
+    ray = ray / np.linalg.norm(ray)
+    ends = view.project(np.stack([position_carm_mm - SLIDE_MM * ray, position_carm_mm + SLIDE_MM * ray]))
+    return (ends[1] - ends[0]) / 2.0
+
+
+def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[int, MarkerPose], d_from_m: dict[int, NDArray[np.float64]],
+            marker_set: MarkerSet, min_bbs: int, depth_view=None) -> dict[int, list]:
+    """{marker id: [(view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...]}: the free blobs each view
+    hands to the camera's markers predicted through ``carm_from_drill`` (4, 4), in views where they were not identified.
+
+    Each view's free blobs are handed out greedily, the marker that explains most BBs first, so that two
+    predicted markers never share a blob. ``depth_view``: the one view every anchor was seen in (None: more
+    than one), whose beam carries the constellation's depth error; other views' claims slide along its image.
+    """
+    free = {k: np.asarray(b, dtype=np.float64).reshape(-1, 2) for k, (_, b) in views.items()}
+    claims: dict[int, list] = {}
+    while True:
+        best = None
+        for i in sorted(d_from_m):
+            seen = {id(o[0]) for o in by_id[i].observations} if i in by_id else set()
+            seen |= {id(c[0]) for c in claims.get(i, [])}
+            pose = carm_from_drill @ d_from_m[i]
+            for k, (view, _) in views.items():
+                if k in seen or len(free[k]) < min_bbs:
+                    continue
+                design = marker_set.by_id(i).bb_centers_mm
+                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
+                if found is None and depth_view is not None and k != id(depth_view):
+                    slide = _slide_px(view, depth_view, pose[:3, 3])
+                    found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=max(min_bbs, SLID_MIN_BBS), slide_px=slide)
+                if found is not None and (best is None or len(found[0]) > len(best[3])):
+                    best = (i, k, view, *found)
+        if best is None:
+            return claims
+        i, k, view, obj, img = best
+        claims.setdefault(i, []).append((view, obj, img))
+        taken = np.any(np.all(np.isclose(free[k][:, None, :], img[None, :, :]), axis=2), axis=1)
+        free[k] = free[k][~taken]

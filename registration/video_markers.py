@@ -177,6 +177,14 @@ def detect_tags(image: NDArray[np.uint8], *, dictionary: str = "DICT_6X6_250") -
     return [(int(i), c.reshape(4, 2).astype(np.float64)) for i, c in zip(ids.ravel(), corners)]
 
 
+def _grid(step_px: float, reach_px: float) -> NDArray[np.float64]:
+    """(K, 2) shifts (px) on a square grid of ``step_px`` out to ``reach_px`` (per axis), nearest first, (0, 0) first."""
+    n = int(np.floor(max(reach_px, 0.0) / step_px)) if step_px > 0 else 0
+    ax = np.arange(-n, n + 1) * step_px
+    grid = np.stack(np.meshgrid(ax, ax), axis=-1).reshape(-1, 2)
+    return grid[np.argsort(np.hypot(grid[:, 0], grid[:, 1]), kind="stable")]
+
+
 def tag_object_points(tag_size_mm: float) -> NDArray[np.float64]:
     """(4, 3) tag corners in the tag frame (IPPE_SQUARE order)."""
     h = tag_size_mm / 2.0
@@ -282,12 +290,15 @@ class VideoMarkerLocator:
         return got.corners_px
 
     def recover(self, image: NDArray[np.uint8], video: VideoDetections, expected_corners_px: Mapping[int, NDArray[np.float64]], *,
-                tolerance_px: float = 8.0) -> VideoDetections:
+                tolerance_px: float = 8.0, reach_px: float = 0.0) -> VideoDetections:
         """``video`` with the missing markers found where they are expected (:func:`.tag_recovery.recover_tag`).
 
         expected_corners_px : {marker id: (4, 2) or (k, 4, 2)} predicted tag corners (OpenCV order), k candidates
             (e.g. a marker's two mirror poses in fluoroscopy): the first one verified is taken. A tag partly out of
             the frame is looked for on what of it is in the frame (``recover_tag(partial=True)``).
+        ``reach_px``: a prediction that may be off by more than ``tolerance_px`` (a registration on one or two
+            markers) is also tried shifted, on a grid of ``tolerance_px`` steps out to ``reach_px``, nearest first,
+            when it is not verified where predicted (each try costs 1-8 ms).
         Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
         nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
         ``RECOVERED_CORNER_SIGMA_PX``.
@@ -301,9 +312,11 @@ class VideoMarkerLocator:
         # The tags that could lie where another is expected: the marker set's, less those seen elsewhere in this frame.
         rivals = {name: tuple(a for a, spec in per.items() if spec.marker_id not in have) for name, per in self._specs.items()}
         found: list[VideoMarker] = []
+        steps = _grid(tolerance_px, reach_px)
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
-            for pred in np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2):
+            preds = np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2)
+            for pred in (p + shift for shift in steps for p in preds):
                 got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True,
                                   square=lambda steps, spec=spec, pred=pred: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if got.accepted:

@@ -13,7 +13,8 @@ import pytest
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
 from drillnav.registration.errors import MarkersNotFound
 from drillnav.registration.fluoro_markers import detect_markers
-from drillnav.registration.marker_pose import register_markers
+from drillnav.registration.marker_pose import MarkerPose, register_markers
+from drillnav.registration.transforms import apply
 from drillnav.registration.video_claims import claim_from_video
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoMarkerLocator
@@ -87,3 +88,41 @@ def test_register_cli_single_lateral_view_with_an_edge_on_marker(tmp_path):
     e = np.array(t["corridor_entry_carm_mm"])
     assert np.linalg.norm((p + np.dot(e - p, u) * u) - (tp + np.dot(e - tp, tu) * tu)) < 2.5
     assert np.degrees(np.arccos(np.clip(abs(u @ tu), -1.0, 1.0))) < 1.0
+
+
+def test_a_marker_posed_in_one_view_claims_its_bbs_in_the_other_along_that_views_beam(monkeypatch):
+    """One marker, identified in the AP view alone on 4 BBs that place it 12 mm deep along the AP beam (low dose,
+    few BBs: its depth is poorly fixed), both planar solutions open. In the lateral view its BBs lie among free
+    blobs, about 60 px from where the constellation predicts them: past the claim's 30 px search, along the image
+    of the AP beam. The claim searches along that line, and of the two mirror fits takes the one the lateral blobs
+    bear out. Seen on the operating-room twin (seed 6301, AP+lateral, second pose): one tag found, its marker posed
+    on 4 AP BBs; the registration came out 89.6 mm off (flagged), and 1.3 mm off with the claim."""
+    from drillnav.registration import video_claims
+    from drillnav.registration.marker_pose import planar_candidates
+
+    scene = make_scene(seed=5, views="ap,lateral", render=False)
+    video = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids).locate(scene.render_camera(np.random.default_rng(1)))
+    ap, lateral = scene.views["ap"], scene.views["lateral"]
+    marker_id = sorted(set(video.by_id()) & set(scene.carm_from_marker))[0]
+    design, true = scene.marker_set.by_id(marker_id), scene.carm_from_marker[marker_id]
+    ray = true[:3, 3] - ap.source_position_mm
+    deep = true.copy()
+    deep[:3, 3] += 12.0 * ray / np.linalg.norm(ray)
+    rng = np.random.default_rng(3)
+    four = design.bb_centers_mm[:4]
+    ap_px = ap.project(apply(deep, four)) + rng.normal(scale=0.3, size=(4, 2))
+    first, *rest = planar_candidates(ap, four, ap_px)
+    lateral_bbs = lateral.project(apply(true, design.bb_centers_mm)) + rng.normal(scale=0.3, size=(len(design.bbs), 2))
+    clutter = rng.uniform([100, 100], [900, 900], size=(12, 2))
+    pose = MarkerPose(marker_id=marker_id, carm_from_marker=first, mirror_carm_from_marker=rest[0] if rest else None, residual_px=0.3, n_views=1,
+                      n_points=4, converged=True, observations=((ap, four, ap_px),),
+                      view_blobs=((ap, clutter), (lateral, np.concatenate([lateral_bbs, clutter]))))
+    claimed = {p.marker_id: p for p in claim_from_video(video, (pose,), scene.marker_set)}[marker_id]
+    got = [o for o in claimed.observations if o[0] is lateral]
+    assert got and len(got[0][1]) >= 4, "the marker claims its BBs in the lateral view"
+    # Each claimed blob is the projection of the design BB it is claimed for.
+    design_index = [int(np.argmin(np.linalg.norm(design.bb_centers_mm - b, axis=1))) for b in got[0][1]]
+    assert np.allclose(got[0][2], lateral_bbs[design_index])
+    # Without the slide along the AP beam the claim finds nothing: the prediction is too far off.
+    monkeypatch.setattr(video_claims, "SLIDE_MM", 0.0)
+    assert claim_from_video(video, (pose,), scene.marker_set) == (pose,)
