@@ -21,7 +21,10 @@ The missed tags are also searched for with no prediction (``VideoMarkerLocator.s
 false ones, their corners' RMS error and the search's time per frame. And tags cut by the frame's edge (at least
 60 % of their area in it), which ArUco never finds, looked for where they are predicted (on what of them is in the
 frame): tags recovered, false ones, and their corners' RMS error, the corners outside the frame included. Markers
-placed as a surgeon places them (``--conditions surgeon_markers``) spread wider than the camera's field.
+placed as a surgeon places them (``--conditions surgeon_markers``) spread wider than the camera's field. Last, the
+missed tags predicted 10-22 px off (a random direction), as a registration on one or two markers predicts them, looked
+for within its reach (``recover(reach_px=pipeline.WEAK_REACH_PX)``): tags recovered, false ones, their corners' RMS
+error and the time per frame.
 
     .venv/bin/python benchmarks/tag_detection.py --seeds 3 --poses 4
     .venv/bin/python benchmarks/tag_detection.py --seeds 31 --poses 3 --first-seed 5000 --conditions surgeon_markers
@@ -39,6 +42,7 @@ import numpy as np
 
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
 from drillnav.drivers.sim.scene import make_scene
+from drillnav.registration.pipeline import WEAK_REACH_PX
 from drillnav.registration.tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_markers import VideoMarkerLocator
@@ -81,7 +85,8 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
     rows = {c: {"visible": 0, "found": 0, "false_ids": 0, "sq_err": 0.0, "n_corners": 0, "seconds": 0.0, "frames": 0,
                  "recovered": 0, "recovered_false": 0, "sq_err_recovered": 0.0,
                  "searched": 0, "searched_false": 0, "sq_err_searched": 0.0, "search_seconds": 0.0,
-                 "partly_visible": 0, "partly": 0, "partly_false": 0, "sq_err_partly": 0.0} for c in conditions}
+                 "partly_visible": 0, "partly": 0, "partly_false": 0, "sq_err_partly": 0.0,
+                 "reached": 0, "reached_false": 0, "sq_err_reached": 0.0, "reach_seconds": 0.0} for c in conditions}
     for seed in range(first_seed, first_seed + seeds):
         for cond in conditions:
             # "all": every camera degradation (the fluoroscopy ones do not touch the camera frame).
@@ -124,6 +129,17 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                                  for i in cut}
                 _score_recovered(locator.recover(frame, det, {i: c for i, c in predicted_cut.items() if c is not None}), cut, r, "partly")
                 _score_recovered(locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}), truth, r, "recovered")
+                # The same tags predicted 10-22 px off, as a registration on one or two markers predicts them, looked for
+                # within the weak registration's reach (pipeline.WEAK_REACH_PX).
+                off_rng = np.random.default_rng([seed, r["frames"], 4])
+                shifted = {}
+                for i, c in expected.items():
+                    if c is not None:
+                        angle, length = off_rng.uniform(0, 2 * np.pi), off_rng.uniform(10.0, 22.0)
+                        shifted[i] = c + length * np.array([np.cos(angle), np.sin(angle)])
+                t0 = time.perf_counter()
+                _score_recovered(locator.recover(frame, det, shifted, reach_px=WEAK_REACH_PX), truth, r, "reached")
+                r["reach_seconds"] += time.perf_counter() - t0
     out = {}
     for c, r in rows.items():
         out[c] = {
@@ -137,6 +153,9 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
             "search_ms_per_frame": 1000.0 * r["search_seconds"] / max(r["frames"], 1),
             "partly_visible": r["partly_visible"], "partly_recovered": r["partly"], "partly_false": r["partly_false"],
             "partly_corner_rms_px": float(np.sqrt(r["sq_err_partly"] / max(4 * r["partly"], 1))),
+            "reached": r["reached"], "reached_false": r["reached_false"],
+            "reached_corner_rms_px": float(np.sqrt(r["sq_err_reached"] / max(4 * r["reached"], 1))),
+            "reach_ms_per_frame": 1000.0 * r["reach_seconds"] / max(r["frames"], 1),
         }
     return out
 
@@ -168,12 +187,13 @@ def main() -> None:
     res = measure(seeds=args.seeds, poses=args.poses, first_seed=args.first_seed, conditions=args.conditions.split(",") if args.conditions else None)
     print(f"{'condition':<14} {'visible':>7} {'found':>6} {'share':>6} {'false':>5} {'corner rms px':>13} {'ms/frame':>8} "
           f"{'recovered':>9} {'false':>5} {'rms px':>6} {'searched':>8} {'false':>5} {'rms px':>6} {'ms':>5} {'cut by edge':>11} {'recovered':>9} "
-          f"{'false':>5} {'rms px':>6}")
+          f"{'false':>5} {'rms px':>6} {'10-22 px off':>12} {'false':>5} {'rms px':>6} {'ms':>5}")
     for c, r in res.items():
         print(f"{c:<14} {r['visible']:>7} {r['found']:>6} {r['found_share']:>6.1%} {r['false_ids']:>5} {r['corner_rms_px']:>13.3f} {r['ms_per_frame']:>8.1f} "
               f"{r['recovered']:>9} {r['recovered_false']:>5} {r['recovered_corner_rms_px']:>6.3f} "
               f"{r['searched']:>8} {r['searched_false']:>5} {r['searched_corner_rms_px']:>6.3f} {r['search_ms_per_frame']:>5.1f} "
-              f"{r['partly_visible']:>11} {r['partly_recovered']:>9} {r['partly_false']:>5} {r['partly_corner_rms_px']:>6.3f}")
+              f"{r['partly_visible']:>11} {r['partly_recovered']:>9} {r['partly_false']:>5} {r['partly_corner_rms_px']:>6.3f} "
+              f"{r['reached']:>12} {r['reached_false']:>5} {r['reached_corner_rms_px']:>6.3f} {r['reach_ms_per_frame']:>5.1f}")
     empty = false_ids_without_tags(seeds=args.seeds, first_seed=args.first_seed)
     print(f"false ids on {args.seeds} tag-free frames (every camera degradation): {empty}")
     print(json.dumps({"seeds": args.seeds, "poses": args.poses, "first_seed": args.first_seed, "false_ids_tag_free_frames": empty,
@@ -187,7 +207,10 @@ def main() -> None:
                                             "search_ms_per_frame": round(r["search_ms_per_frame"], 2),
                                             "partly_in_frame_tags": r["partly_visible"], "partly_recovered": r["partly_recovered"],
                                             "partly_false": r["partly_false"],
-                                            "partly_corner_rms_px": round(r["partly_corner_rms_px"], 4)} for c, r in res.items()}}))
+                                            "partly_corner_rms_px": round(r["partly_corner_rms_px"], 4),
+                                            "off_10_22px_recovered_within_reach": r["reached"], "off_10_22px_false": r["reached_false"],
+                                            "off_10_22px_corner_rms_px": round(r["reached_corner_rms_px"], 4),
+                                            "reach_ms_per_frame": round(r["reach_ms_per_frame"], 2)} for c, r in res.items()}}))
 
 
 if __name__ == "__main__":

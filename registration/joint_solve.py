@@ -273,10 +273,10 @@ def joint_solve(
             if odd is not None:
                 rejected.append(odd[0])
                 ids = [i for i in ids if i != odd[0]]
-                known = odd[1]  # the others' fit without it: the next round starts there, not where it dragged them
-                # The single BBs were trimmed against the fit it dragged: the others get theirs back, and are trimmed anew.
+                # The single BBs were trimmed against the fit it dragged: the others get theirs back, and are trimmed
+                # anew; the next round starts from their fit without it, not where it dragged them.
                 observations, trimmed = {i: untrimmed[i] for i in ids}, False
-                known = _solve(ids, observations, corners_px, known.carm_from_drill, known.carm_from_marker, *args, loss="soft_l1")
+                known = _solve(ids, observations, corners_px, odd[1].carm_from_drill, odd[1].carm_from_marker, *args, loss="soft_l1")
                 continue
         break
     # The final fit is plain least squares: its Jacobian gives the covariance.

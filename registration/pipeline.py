@@ -222,8 +222,9 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     if not expected:
         return video, reg
     # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
-    # the operating-room twin); a frame that may search (the joint solve's) also tries the prediction shifted.
-    weak = search and len(reg.used_ids) < HORN_MIN_MARKERS
+    # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
+    # also tries the prediction shifted.
+    weak = search and joint and len(reg.used_ids) < HORN_MIN_MARKERS
     more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0)
     left = set(expected) - {m.marker_id for m in more.markers}
     if search and not searched and left:
