@@ -183,10 +183,21 @@ def register_markers(
     for pose in poses:
         seen = {id(o[0]) for o in pose.observations}
         extra = []
+        design = marker_set.by_id(pose.marker_id).bb_centers_mm
+        # Posed in one view, the marker's depth along that view's beam is poorly fixed (4-7 BBs in low dose: 5-12 mm),
+        # which slides its pattern in another view along that beam's image; and both planar solutions stay open.
+        source = pose.observations[0][0] if len(seen) == 1 else None
         for k, (det, view) in enumerate(zip(detections, views)):
             if id(view) in seen or not len(free[k]):
                 continue
-            found = claim_bbs(view, pose.carm_from_marker, marker_set.by_id(pose.marker_id).bb_centers_mm, free[k])
+            found = claim_bbs(view, pose.carm_from_marker, design, free[k])
+            if found is None and source is not None:
+                for start in (pose.carm_from_marker, pose.mirror_carm_from_marker):
+                    if start is not None:
+                        found = claim_bbs(view, start, design, free[k], search_px=CROSS_VIEW_ACROSS_PX, tol_px=CROSS_VIEW_SLID_TOL_PX, min_bbs=CROSS_VIEW_SLID_MIN_BBS,
+                                          slide_px=_beam_image_px(view, source, start[:3, 3], CROSS_VIEW_SLIDE_MM))
+                        if found is not None:
+                            break
             if found is not None:
                 extra.append((view, *found))
         if extra:
@@ -198,6 +209,23 @@ def register_markers(
                 pose = again
         out.append(replace(pose, view_blobs=view_blobs))
     return tuple(out)
+
+
+# A marker posed in one view claims its BBs in another view sliding along the image of the first view's beam,
+# this far in depth (either sense) and this far across it, asking then for this many BBs on one shift; the marker
+# is then solved over both views, and kept so only when that fit converges (its RMS within ``max_residual_px``).
+CROSS_VIEW_SLIDE_MM = 25.0
+CROSS_VIEW_ACROSS_PX = 20.0
+CROSS_VIEW_SLID_MIN_BBS = 4
+CROSS_VIEW_SLID_TOL_PX = 3.5  # low-dose BB centres scatter 1-3 px, and a one-view pose's tilt bends the pattern a little
+
+
+def _beam_image_px(view: CArmView, source_view: CArmView, position_carm_mm: NDArray[np.float64], depth_mm: float) -> NDArray[np.float64]:
+    """(2,) the image in ``view`` of ``depth_mm`` along ``source_view``'s ray through ``position_carm_mm`` (3,), px."""
+    ray = position_carm_mm - source_view.source_position_mm
+    ray = ray / np.linalg.norm(ray)
+    ends = view.project(np.stack([position_carm_mm - depth_mm * ray, position_carm_mm + depth_mm * ray]))
+    return (ends[1] - ends[0]) / 2.0
 
 
 def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3,
