@@ -57,7 +57,6 @@ def test_a_marker_posed_in_one_view_claims_its_bbs_in_the_other_along_the_first_
     inlet, outlet = scene.views["inlet"], scene.views["outlet"]
     rng = np.random.default_rng(5)
     target = sorted(scene.carm_from_marker)[0]
-    design = scene.marker_set.by_id(target)
     true = scene.carm_from_marker[target]
     ray = true[:3, 3] - inlet.source_position_mm
     deep = true.copy()
