@@ -296,17 +296,19 @@ def _odd_one_out(ids, observations, corners_px, drill0, markers0, args, outlier_
                  given: dict[int, NDArray[np.float64]]) -> tuple[int, JointSolution] | None:
     """The marker without which every other marker fits within its noise (RMS normalised residual at most
     ``outlier_chi``), when exactly one marker is such, with the others' fit without it; None otherwise. One robust
-    fit (soft L1) per marker left out, from ``drill0``, ``markers0``; a single marker left is also fitted from its
-    given start ``given[id]`` (its fluoroscopy pose) with the drill its tag puts there, since the joint fit may
-    have dragged it far."""
+    fit (soft L1) per marker left out, from ``drill0``, ``markers0``, and also from the markers' given starts
+    ``given`` (their fluoroscopy poses) with the drill a tag puts there, since the joint fit may have dragged them far."""
     clean: list[tuple[int, JointSolution]] = []
     for i in ids:
         rest = [j for j in ids if j != i]
         starts = [(drill0, markers0)]
-        if len(rest) == 1:
-            drill = _drill_from_tag(given[rest[0]], corners_px[rest[0]], marker_set=args[0], camera=args[1], marker_id=rest[0])
+        for j in rest:
+            # The markers' given poses with the drill a tag puts there (the first whose corners all stand): the fit
+            # in hand may have been dragged far.
+            drill = _drill_from_tag(given[j], corners_px[j], marker_set=args[0], camera=args[1], marker_id=j)
             if drill is not None:
-                starts.append((drill, {**markers0, rest[0]: given[rest[0]]}))
+                starts.append((drill, {**markers0, **{k: given[k] for k in rest}}))
+                break
         for drill, markers in starts:
             try:
                 sol = _solve(rest, observations, corners_px, drill, markers, *args, loss="soft_l1")
