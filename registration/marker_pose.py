@@ -27,7 +27,7 @@ from .fluoro_markers import FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
-__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "MIRROR_RATIO"]
+__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "beam_image_px", "MIRROR_RATIO"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -195,7 +195,7 @@ def register_markers(
                 for start in (pose.carm_from_marker, pose.mirror_carm_from_marker):
                     if start is not None:
                         found = claim_bbs(view, start, design, free[k], search_px=CROSS_VIEW_ACROSS_PX, tol_px=CROSS_VIEW_SLID_TOL_PX, min_bbs=CROSS_VIEW_SLID_MIN_BBS,
-                                          slide_px=_beam_image_px(view, source, start[:3, 3], CROSS_VIEW_SLIDE_MM))
+                                          slide_px=beam_image_px(view, source, start[:3, 3], CROSS_VIEW_SLIDE_MM))
                         if found is not None:
                             break
             if found is not None:
@@ -220,7 +220,7 @@ CROSS_VIEW_SLID_MIN_BBS = 4
 CROSS_VIEW_SLID_TOL_PX = 3.5  # low-dose BB centres scatter 1-3 px, and a one-view pose's tilt bends the pattern a little
 
 
-def _beam_image_px(view: CArmView, source_view: CArmView, position_carm_mm: NDArray[np.float64], depth_mm: float) -> NDArray[np.float64]:
+def beam_image_px(view: CArmView, source_view: CArmView, position_carm_mm: NDArray[np.float64], depth_mm: float) -> NDArray[np.float64]:
     """(2,) the image in ``view`` of ``depth_mm`` along ``source_view``'s ray through ``position_carm_mm`` (3,), px."""
     ray = position_carm_mm - source_view.source_position_mm
     ray = ray / np.linalg.norm(ray)

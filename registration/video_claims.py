@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .marker_pose import MarkerPose, claim_bbs
+from .marker_pose import MarkerPose, beam_image_px, claim_bbs
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
@@ -159,14 +159,6 @@ def _count(claims: dict[int, list]) -> int:
     return sum(len(c[1]) for per in claims.values() for c in per)
 
 
-def _slide_px(view, depth_view, position_carm_mm: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(2,) the image in ``view`` of ``SLIDE_MM`` along ``depth_view``'s ray through ``position_carm_mm`` (3,), px."""
-    ray = position_carm_mm - depth_view.source_position_mm
-    ray = ray / np.linalg.norm(ray)
-    ends = view.project(np.stack([position_carm_mm - SLIDE_MM * ray, position_carm_mm + SLIDE_MM * ray]))
-    return (ends[1] - ends[0]) / 2.0
-
-
 def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[int, MarkerPose], d_from_m: dict[int, NDArray[np.float64]],
             marker_set: MarkerSet, min_bbs: int, depth_view=None) -> dict[int, list]:
     """{marker id: [(view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...]}: the free blobs each view
@@ -190,7 +182,7 @@ def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[in
                 design = marker_set.by_id(i).bb_centers_mm
                 found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
                 if found is None and depth_view is not None and k != id(depth_view):
-                    slide = _slide_px(view, depth_view, pose[:3, 3])
+                    slide = beam_image_px(view, depth_view, pose[:3, 3], SLIDE_MM)
                     found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=max(min_bbs, SLID_MIN_BBS), slide_px=slide)
                 if found is not None and (best is None or len(found[0]) > len(best[3])):
                     best = (i, k, view, *found)
