@@ -316,10 +316,19 @@ class VideoMarkerLocator:
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
             preds = np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2)
-            for pred in (p + shift for shift in steps for p in preds):
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True,
-                                  square=lambda steps, spec=spec, pred=pred: self._square_fit(steps, spec=spec, predicted_px=pred))
+
+            def attempt(pred):
+                return recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True,
+                                   square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
+
+            for k, pred in enumerate(p + shift for shift in steps for p in preds):
+                got = attempt(pred)
                 if got.accepted:
+                    if k >= len(preds):
+                        # Found from a shifted prediction: looked for once more where it was found, so that its edges
+                        # (and a hidden edge's square fit) are placed from a prediction as near as a good registration's.
+                        again = attempt(got.corners_px)
+                        got = again if again.accepted else got
                     found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
                     break
         if not found:
