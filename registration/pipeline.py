@@ -58,7 +58,8 @@ __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", 
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
-# markers, on the recovery's 8 px grid (48 tries at most, 1-8 ms each, paid only by a tag not found where predicted).
+# markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
+# benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
 WEAK_REACH_PX = 24.0
 
 

@@ -298,7 +298,7 @@ class VideoMarkerLocator:
             the frame is looked for on what of it is in the frame (``recover_tag(partial=True)``).
         ``reach_px``: a prediction that may be off by more than ``tolerance_px`` (a registration on one or two
             markers) is also tried shifted, on a grid of ``tolerance_px`` steps out to ``reach_px``, nearest first,
-            when it is not verified where predicted (each try costs 1-8 ms).
+            when it is not verified where predicted (``benchmarks/tag_detection.py`` prints the time per frame).
         Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
         nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
         ``RECOVERED_CORNER_SIGMA_PX``.
