@@ -174,7 +174,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                     diagnose.append({"seed": seed, "pair": pair, "views": list(vs), "M": m, "subset": subset, "pose": pose_index,
                                                      "used": len(reg.used_ids), "pos_mm": pos,
                                                      "ang_deg": axis.angle_deg(true_axis), "b90_mm": pe.position90_mm, "b90_deg": pe.angle90_deg,
-                                                     "reliable": pe.reliable})
+                                                     "reliable": pe.reliable, **_seen(scene, carm_from_drill, video, chosen, subset)})
         print(f"[{deg.label()}] seed {seed} done", file=sys.stderr, flush=True)
     return {"rows": rows, "refusals": refusals, "tried": tried}
 
@@ -182,6 +182,14 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
 def tags_in_view(scene, carm_from_drill) -> set[int]:
     """Markers whose tag lies wholly inside the camera frame at this drill pose (the twin's truth, as tag_detection.py counts them)."""
     return set(_true_corners(scene, carm_from_drill))
+
+
+def _seen(scene, carm_from_drill, video, chosen, subset) -> dict:
+    """What each modality had of the M markers placed: tags in the camera's view (truth) and found, markers posed in fluoroscopy."""
+    placed = set(subset)
+    return {"camera_in_view": sorted(tags_in_view(scene, carm_from_drill) & placed),
+            "camera_found": sorted({v.marker_id for v in video.markers} & placed),
+            "posed": sorted(p.marker_id for p in chosen if p.observations)}
 
 
 def _case(scene, carm_from_drill, video, dets: dict, chosen, subset, *, seed: int, pair: str, reason: str) -> dict:

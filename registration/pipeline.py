@@ -54,7 +54,7 @@ from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_fram
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "predict_missing_tags", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
@@ -169,7 +169,11 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
     """
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=carm_from_drill,
                                     carm_from_marker=carm_from_marker)
-    return locator.recover(image, video, expected) if expected else video
+    if not expected:
+        return video
+    placed = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=carm_from_drill,
+                                carm_from_marker=carm_from_marker)
+    return locator.recover(image, video, expected, placed_px=placed)
 
 
 def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...],
@@ -181,17 +185,42 @@ def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator,
     Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else its
     fluoroscopy pose and mirror pose (K = 2 when fluoroscopy left it open).
     """
-    refined = carm_from_marker or {}
+    missing = {p.marker_id for p in _missing(video, poses, locator)}
+    places = predict_tag_places(locator=locator, camera=camera, poses=tuple(p for p in poses if p.marker_id in missing), marker_set=marker_set,
+                                carm_from_drill=carm_from_drill, carm_from_marker=carm_from_marker)
     expected = {}
-    for p in _missing(video, poses, locator):
+    for marker_id, cands in places.items():
+        # Only tags mostly in the frame (a tag cut by its edge is fitted on what is in it): a marker out of view costs nothing more.
+        cands = [c for c in cands if share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME]
+        if cands:
+            expected[marker_id] = np.stack(cands)
+    return expected
+
+
+def predict_tag_places(*, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
+                       carm_from_drill: NDArray[np.float64], carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> dict[int, NDArray[np.float64]]:
+    """{marker id: (K, 4, 2) px}: where the registration ``carm_from_drill`` (4, 4) puts the tag of every marker posed in
+    fluoroscopy (converged) that the locator knows, in the frame or not; K = 0 when every candidate lies behind the camera.
+
+    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else its
+    fluoroscopy pose and mirror pose (K = 2 when fluoroscopy left it open).
+    """
+    refined = carm_from_marker or {}
+    places = {}
+    for p in poses:
+        if not p.converged or p.marker_id not in locator.marker_ids:
+            continue
         starts = (refined[p.marker_id],) if p.marker_id in refined else (p.carm_from_marker, p.mirror_carm_from_marker)
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
                  for t in starts if t is not None]
-        # Only tags mostly in the frame (a tag cut by its edge is fitted on what is in it): a marker out of view costs nothing more.
-        cands = [c for c in cands if c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME]
-        if cands:
-            expected[p.marker_id] = np.stack(cands)
-    return expected
+        cands = [c for c in cands if c is not None]
+        places[p.marker_id] = np.stack(cands) if cands else np.zeros((0, 4, 2))
+    return places
+
+
+def _merged(a: dict[int, NDArray[np.float64]], b: dict[int, NDArray[np.float64]]) -> dict[int, NDArray[np.float64]]:
+    """{id: (K_a + K_b, 4, 2)}: two sets of predicted tag corners (a registration's two solutions) stacked per marker."""
+    return {i: np.concatenate([c for c in (a.get(i), b.get(i)) if c is not None]) for i in a.keys() | b.keys()}
 
 
 def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
@@ -219,14 +248,20 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # are looked for where either solution puts them, so the one the frame bears out brings the markers that settle it.
         mirrored = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
                                         carm_from_drill=reg.mirror_carm_from_drill)
-        expected = {i: np.concatenate([c for c in (expected.get(i), mirrored.get(i)) if c is not None]) for i in expected.keys() | mirrored.keys()}
+        expected = _merged(expected, mirrored)
     if not expected:
         return video, reg
+    # Where the registration puts every posed marker's tag: one placed away from a missing tag is no rival to its identity.
+    placed = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                carm_from_marker=reg.carm_from_marker)
+    if reg.mirror_carm_from_drill is not None:
+        placed = _merged(placed, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                                    carm_from_drill=reg.mirror_carm_from_drill))
     # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
     # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
     # also tries the prediction shifted.
     weak = search and joint and len(reg.used_ids) < HORN_MIN_MARKERS
-    more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0)
+    more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed)
     left = set(expected) - {m.marker_id for m in more.markers}
     if search and not searched and left:
         # Predicted in the frame but not where the prediction put it (a registration on one or two markers is

@@ -24,7 +24,18 @@ from .tag_square_fit import SquareFit, fit_square_to_edges
 from .tag_search import search_tags
 from .transforms import make_transform
 
-__all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points"]
+__all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points", "placed_elsewhere", "PLACED_MARGIN_PX",
+           "RECOVERED_MAX_SQUARE_RMS_PX"]
+
+# Two tags of the marker set cannot be confused by a recovery when the registration places them at least this much
+# farther apart than its two predictions can both be off (:func:`placed_elsewhere`): a quarter of a 60 px tag.
+PLACED_MARGIN_PX = 16.0
+
+# A recovered tag's four corners must be a view of its square (the tag's size, this camera) within this RMS, px
+# (``VideoMarker.reprojection_error_px``). Measured on a foreshortened, gloved and blurred tag (twin seed 6104,
+# marker 45, recovered from 147 predictions up to 34 px off): every placement within 2.6 px of the truth fitted its
+# square within 0.49 px, the four 5-9 px off (one edge fitted to the wrong step) at 1.49-2.63 px.
+RECOVERED_MAX_SQUARE_RMS_PX = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -185,6 +196,20 @@ def _grid(step_px: float, reach_px: float) -> NDArray[np.float64]:
     return grid[np.argsort(np.hypot(grid[:, 0], grid[:, 1]), kind="stable")]
 
 
+def placed_elsewhere(other_px: NDArray[np.float64], here_px: NDArray[np.float64], *, tolerance_px: float, reach_px: float) -> bool:
+    """Whether a tag predicted at ``other_px`` (k, 4, 2) cannot be the one found near ``here_px`` (m, 4, 2) (candidates:
+    a marker's two mirror poses, the registration's two solutions): every candidate's centre lies farther from every
+    one here than two predictions of one registration can both be off, 2 (``tolerance_px`` + ``reach_px`` sqrt 2)
+    (each is found up to ``tolerance_px`` from its prediction, shifted up to ``reach_px`` per axis), plus
+    ``PLACED_MARGIN_PX``. k = 0 (the tag predicted behind the camera) is elsewhere."""
+    other = np.asarray(other_px, dtype=np.float64).reshape(-1, 4, 2).mean(axis=1)
+    here = np.asarray(here_px, dtype=np.float64).reshape(-1, 4, 2).mean(axis=1)
+    if not len(other):
+        return True
+    limit = 2.0 * (tolerance_px + reach_px * np.sqrt(2.0)) + PLACED_MARGIN_PX
+    return bool(np.linalg.norm(other[:, None] - here[None], axis=-1).min() > limit)
+
+
 def tag_object_points(tag_size_mm: float) -> NDArray[np.float64]:
     """(4, 3) tag corners in the tag frame (IPPE_SQUARE order)."""
     h = tag_size_mm / 2.0
@@ -290,7 +315,7 @@ class VideoMarkerLocator:
         return got.corners_px
 
     def recover(self, image: NDArray[np.uint8], video: VideoDetections, expected_corners_px: Mapping[int, NDArray[np.float64]], *,
-                tolerance_px: float = 8.0, reach_px: float = 0.0) -> VideoDetections:
+                tolerance_px: float = 8.0, reach_px: float = 0.0, placed_px: Mapping[int, NDArray[np.float64]] | None = None) -> VideoDetections:
         """``video`` with the missing markers found where they are expected (:func:`.tag_recovery.recover_tag`).
 
         expected_corners_px : {marker id: (4, 2) or (k, 4, 2)} predicted tag corners (OpenCV order), k candidates
@@ -299,6 +324,10 @@ class VideoMarkerLocator:
         ``reach_px``: a prediction that may be off by more than ``tolerance_px`` (a registration on one or two
             markers) is also tried shifted, on a grid of ``tolerance_px`` steps out to ``reach_px``, nearest first,
             when it is not verified where predicted (``benchmarks/tag_detection.py`` prints the time per frame).
+        ``placed_px``: {marker id: (k, 4, 2)} where the same registration puts the tag of every marker posed in
+            fluoroscopy, seen or not (k = 0: nowhere it can be seen). A tag of the marker set is a rival of a
+            missing one (its identity judged against it, :func:`.tag_recovery.recover_tag`'s ``rivals``) unless it
+            is seen elsewhere in the frame or placed away from the missing tag (:func:`placed_elsewhere`).
         Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
         nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
         ``RECOVERED_CORNER_SIGMA_PX``.
@@ -309,27 +338,36 @@ class VideoMarkerLocator:
         if not todo:
             return video
         gray = _gray(image).astype(np.float32)
-        # The tags that could lie where another is expected: the marker set's, less those seen elsewhere in this frame.
-        rivals = {name: tuple(a for a, spec in per.items() if spec.marker_id not in have) for name, per in self._specs.items()}
         found: list[VideoMarker] = []
         steps = _grid(tolerance_px, reach_px)
+        placed = placed_px or {}
         for marker_id, cands in sorted(todo.items()):
             name, aruco_id, spec = by_marker[marker_id]
             preds = np.asarray(cands, dtype=np.float64).reshape(-1, 4, 2)
+            # The tags that could lie where this one is expected: the marker set's, less those seen elsewhere in this
+            # frame and those the registration places away from here.
+            rivals = tuple(a for a, other in self._specs[name].items() if other.marker_id not in have
+                           and not (other.marker_id in placed and placed_elsewhere(placed[other.marker_id], preds, tolerance_px=tolerance_px, reach_px=reach_px)))
 
-            def attempt(pred):
-                return recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals[name], partial=True,
-                                   square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
+            def attempt(pred) -> VideoMarker | None:
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals, partial=True,
+                                  square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
+                if not got.accepted:
+                    return None
+                marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX)
+                # Four corners that are no view of the tag's square (an edge's line fitted to a glove's or a code cell's
+                # step) are no tag there.
+                return marker if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX else None
 
             for k, pred in enumerate(p + shift for shift in steps for p in preds):
                 got = attempt(pred)
-                if got.accepted:
+                if got is not None:
                     if k >= len(preds):
                         # Found from a shifted prediction: looked for once more where it was found, so that its edges
                         # (and a hidden edge's square fit) are placed from a prediction as near as a good registration's.
                         again = attempt(got.corners_px)
-                        got = again if again.accepted else got
-                    found.append(self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
+                        got = again if again is not None else got
+                    found.append(got)
                     break
         if not found:
             return video

@@ -30,7 +30,8 @@ from drillnav.registration.pipeline import LiveCalibration, recover_missing_tags
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, predict_tag_corners, recover_tag
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 from drillnav.registration.transforms import apply, make_transform
-from drillnav.registration.video_markers import VideoMarkerLocator
+from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.video_markers import RECOVERED_MAX_SQUARE_RMS_PX, VideoDetections, VideoMarkerLocator, placed_elsewhere, tag_object_points
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
@@ -335,3 +336,61 @@ def test_a_tag_found_from_a_shifted_prediction_is_placed_as_from_its_own():
             got = locator.recover(frame, video, {39: predicted + length * np.array([np.cos(angle), np.sin(angle)])}, reach_px=WEAK_REACH_PX).by_id()[39]
             worst.append(float(np.linalg.norm(got.corners_px - truth, axis=1).max()))
     assert max(worst) < 1.0, sorted(worst)[-3:]
+
+
+def test_a_tag_of_the_set_placed_away_from_a_missing_one_is_no_rival_to_its_identity():
+    """The glared tag of seed 3000 (10 code cells readable), with none of the frame's other tags seen: every tag of
+    the set is then a rival, and some fits the 10 cells nearly as well, so it is refused. When the registration places
+    every other marker's tag elsewhere in the frame (``placed_px``, as ``register_with_recovery`` passes its own), none
+    of them can be at the predicted place, and the tag is recovered there."""
+    seed, marker = 3000, 33
+    scene = make_scene(seed=seed, render=False, degradations=Degradations(tag_glare=True))
+    pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
+    image = scene.render_camera(np.random.default_rng([seed, 3]), carm_from_drill=pose)
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    none_seen = replace(locator.locate(image), markers=())
+    places = {i: _predicted(scene, pose, i) for i in scene.carm_from_marker}
+    assert all(c is not None for c in places.values())
+    refused = locator.recover(image, none_seen, {marker: places[marker]})
+    assert marker not in refused.by_id()
+    placed = {i: c[None] for i, c in places.items()}
+    got = locator.recover(image, none_seen, {marker: places[marker]}, placed_px=placed)
+    assert got.by_id()[marker].recovered
+    assert np.linalg.norm(got.by_id()[marker].corners_px - _true_corners(scene, pose)[marker], axis=1).max() <= CORNER_TOLERANCE_PX
+    # A tag placed where the missing one is expected stays a rival, however the registration may err.
+    assert not placed_elsewhere(places[marker][None] + 5.0, places[marker][None], tolerance_px=8.0, reach_px=0.0)
+    # A tag placed 60 px away is no rival to a strong registration's prediction, but is one within a weak one's reach.
+    assert placed_elsewhere(places[marker][None] + [60.0, 0.0], places[marker][None], tolerance_px=8.0, reach_px=0.0)
+    assert not placed_elsewhere(places[marker][None] + [60.0, 0.0], places[marker][None], tolerance_px=8.0, reach_px=24.0)
+    # A marker whose tag the registration puts behind the camera is nowhere in the frame.
+    assert placed_elsewhere(np.zeros((0, 4, 2)), places[marker][None], tolerance_px=8.0, reach_px=24.0)
+
+
+def test_four_corners_that_are_no_view_of_the_tags_square_are_not_taken_for_it():
+    """A 30 mm tag 220 mm from a 900 px camera, tilted 35 deg, drawn on its base: recovered where predicted, its
+    corners a view of its square within 0.5 px. The same tag drawn with one corner 10 px off its square's view (as
+    an edge fitted to a glove's or a code cell's step places it): ``recover_tag`` finds its edges and reads its code
+    there, but the locator does not take four corners that fit the square at over ``RECOVERED_MAX_SQUARE_RMS_PX``."""
+    camera = PinholeCamera(width=1280, height=720, camera_matrix=np.array([[900.0, 0.0, 640.0], [0.0, 900.0, 360.0], [0.0, 0.0, 1.0]]))
+    locator = VideoMarkerLocator(camera=camera, marker_ids=[7], tag_size_mm=30.0)
+    rot = Rotation.from_euler("xy", [215.0, 10.0], degrees=True).as_matrix()
+    square = cv2.projectPoints((rot @ tag_object_points(30.0).T).T + [0.0, 0.0, 220.0], np.zeros(3), np.zeros(3), camera.camera_matrix,
+                               camera.distortion)[0].reshape(4, 2)
+    tag = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), 7, 400)
+
+    def drawn(quad):
+        h = cv2.getPerspectiveTransform(np.array([[0, 0], [400, 0], [400, 400], [0, 400]], np.float32) - 0.5, quad.astype(np.float32))
+        image = np.full((720, 1280), 190, np.uint8)
+        inside = cv2.warpPerspective(np.full((400, 400), 255, np.uint8), h, (1280, 720)) > 0
+        image[inside] = np.where(cv2.warpPerspective(tag, h, (1280, 720), flags=cv2.INTER_AREA)[inside] > 127, 190, 40)
+        return cv2.GaussianBlur(image, (0, 0), 0.8)
+
+    nothing = VideoDetections(markers=(), ignored_ids=(), image_size=(1280, 720))
+    got = locator.recover(drawn(square), nothing, {7: square})
+    assert got.by_id()[7].recovered and got.by_id()[7].reprojection_error_px <= 0.5
+    assert np.linalg.norm(got.by_id()[7].corners_px - square, axis=1).max() <= 1.0
+    skewed = square + np.array([[0.0, 0.0], [0.0, 0.0], [8.0, 6.0], [0.0, 0.0]])
+    found = recover_tag(drawn(skewed).astype(np.float32), skewed, aruco_id=7)
+    assert found.accepted, found.reason
+    assert np.linalg.norm(found.corners_px - skewed, axis=1).max() <= 1.0
+    assert 7 not in locator.recover(drawn(skewed), nothing, {7: skewed}).by_id()
