@@ -48,7 +48,8 @@ from .video_claims import drill_from_marker
 from .video_markers import tag_object_points
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
-           "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX"]
+           "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX",
+           "SQUARE_MISFIT_PER_RMS", "SQUARE_MISFIT_MIN_PX", "square_misfit_noise_px"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -72,6 +73,21 @@ DISTORTION_SIGMA = DEFAULT_INTRINSICS_UNCERTAINTY.distortion
 # (its independent noise floored at half the stated 0.3 px, so charged 0.07 / 0.21 px).
 CORNER_COMMON_PER_SIGMA = 0.45
 CORNER_SCALE_PER_SIGMA = 1.4
+
+# A tag's four corners fit a view of its square (its size, the calibrated camera) with 2 degrees of freedom to
+# spare: an RMS misfit r (px, over the corners) says each corner coordinate is off by about sqrt(2) r. Under every
+# camera degradation (twin seeds 5000-5030, 3 poses, 314 detected tags) the tags with a corner over 1.5 px off
+# misfit their square by 0.07-2.0 px, half of them over 0.33 px; the others by 0.06 px (median), 0.15 px (p90),
+# 0.36 px (p99). A misfit over SQUARE_MISFIT_MIN_PX is charged as extra noise on each of the tag's corners.
+SQUARE_MISFIT_PER_RMS = float(np.sqrt(2.0))
+SQUARE_MISFIT_MIN_PX = 0.2
+
+
+def square_misfit_noise_px(reprojection_error_px: float) -> float:
+    """The extra independent noise (px) charged to each corner of a tag whose corners misfit a view of its square by
+    ``reprojection_error_px`` RMS (``VideoMarker.reprojection_error_px``): 0 up to :data:`SQUARE_MISFIT_MIN_PX`."""
+    r = float(reprojection_error_px)
+    return SQUARE_MISFIT_PER_RMS * r if r > SQUARE_MISFIT_MIN_PX else 0.0
 # One marker's BBs in one fluoroscopy view: an image intensifier's distortion (pincushion, S) is smooth over a
 # marker's few centimetres, so it shifts and scales its BBs together; with every fluoroscopy degradation on,
 # 0.77 px shift and 0.24 px scale (independent rest 0.28 px, and the BBs' 0.05 mm manufacturing error 0.32 px
@@ -166,6 +182,7 @@ def joint_solve(
     bb_outlier_chi: float = 5.0,
     min_markers: int = 3,
     crowded_bbs: bool = True,
+    corner_extra_px: dict[int, float] | None = None,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
 
@@ -189,7 +206,8 @@ def joint_solve(
     the estimate weighs the groups right and the covariance carries the shared part, which the residuals cannot
     show. ``crowded_bbs``: a BB whose shadow overlaps or nearly touches another's (:func:`_crowding`, at each
     round's starting poses) is charged its detector's pull as extra noise (:data:`CROWDED_BB_PX`); False charges
-    it like any BB.
+    it like any BB. ``corner_extra_px``: {marker id: px} extra independent noise of each of that tag's corners
+    (what its four corners' misfit to a view of its square shows, :data:`SQUARE_MISFIT_PER_RMS`); absent: none.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -211,8 +229,11 @@ def joint_solve(
     if not (corner_common_sigma_px >= 0 and corner_scale_sigma_px >= 0 and bb_common_sigma_px >= 0 and bb_scale_sigma_px >= 0):
         raise ValueError(f"shared sigmas must be >= 0, got corner shift {corner_common_sigma_px}, corner scale {corner_scale_sigma_px}, "
                          f"BB shift {bb_common_sigma_px}, BB scale {bb_scale_sigma_px}")
+    corner_extra = {i: float(v) for i, v in (corner_extra_px or {}).items() if v > 0}
+    if not all(np.isfinite(v) for v in corner_extra.values()):
+        raise ValueError(f"a tag's extra corner noise must be finite, got {corner_extra}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs)
+            crowded_bbs, corner_extra)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
@@ -545,8 +566,8 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
-           fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool, *,
-           loss: str) -> JointSolution:
+           fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
+           corner_extra: dict[int, float], *, loss: str) -> JointSolution:
     m = len(ids)
     poses0 = np.stack([markers0[i] for i in ids])
     pivots = poses0[:, :3, 3].copy()
@@ -586,7 +607,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     c_mk_all = np.repeat(np.arange(m), 4)
     c_groups = [np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)[keep] for i, keep in zip(ids, c_keep)]
     c_obj, c_img, c_mk = c_obj_all[c_sel], np.concatenate(c_groups), c_mk_all[c_sel]
-    wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px)
+    c_extra = [np.full(int(keep.sum()), corner_extra.get(i, 0.0)) for i, keep in zip(ids, c_keep)] if any(i in corner_extra for i in ids) else None
+    wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from .camera import PinholeCamera
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .joint_solve import FOCAL_REL_SIGMA, JointSolution, joint_solve
+from .joint_solve import FOCAL_REL_SIGMA, JointSolution, joint_solve, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
@@ -175,7 +175,8 @@ def register_video_to_fluoro(
                 start[:3, 3] = every[i].position_carm_mm
                 carm_from_marker[i] = start
         solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
-                     marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)))
+                     marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
+                     corner_extra_px={i: square_misfit_noise_px(vids[i].reprojection_error_px) for i in joinable})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
