@@ -437,7 +437,7 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
         "  the covariance by the reduced chi-square",
         "  ([identity and error](identity_and_error.md#a-marker-that-drags-the-others-and-a-misfit-the-bound-must-show-30-nov-2026-evening)).",
         "  Markers whose fluoroscopy-only pose did not converge join it. A tag whose four corners misfit a view of its",
-        "  square by over 0.2 px RMS is charged sqrt(2) times that misfit as extra noise on each corner",
+        "  square by over 0.2 px RMS is charged sqrt(2) times that misfit as extra noise on each corner, and a recovered tag its stated 0.5 px",
         "  ([identity and error](identity_and_error.md#tags-the-frame-still-missed-rivals-the-registration-places-elsewhere-and-corners-that-are-no-square-30-nov-2026-late-night)).",
         "  Each tag's corners and each marker's BBs in a view also share a shift and a scale (stated sizes, whitened per",
         "  group); a BB whose shadow overlaps or nearly touches another's is charged its detector's pull (up to 3.5 px,",

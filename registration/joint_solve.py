@@ -49,7 +49,7 @@ from .video_markers import tag_object_points
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
            "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX",
-           "SQUARE_MISFIT_PER_RMS", "SQUARE_MISFIT_MIN_PX", "square_misfit_noise_px"]
+           "SQUARE_MISFIT_PER_RMS", "SQUARE_MISFIT_MIN_PX", "square_misfit_noise_px", "CORNER_SIGMA_PX"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -73,6 +73,9 @@ DISTORTION_SIGMA = DEFAULT_INTRINSICS_UNCERTAINTY.distortion
 # (its independent noise floored at half the stated 0.3 px, so charged 0.07 / 0.21 px).
 CORNER_COMMON_PER_SIGMA = 0.45
 CORNER_SCALE_PER_SIGMA = 1.4
+
+# A tag corner's independent noise (1 sigma, px) the solve starts from; re-estimated from the corners' residuals.
+CORNER_SIGMA_PX = 0.3
 
 # A tag's four corners fit a view of its square (its size, the calibrated camera) with 2 degrees of freedom to
 # spare: an RMS misfit r (px, over the corners) says each corner coordinate is off by about sqrt(2) r. Under every
@@ -170,7 +173,7 @@ def joint_solve(
     carm_from_drill0: NDArray[np.float64],
     carm_from_marker0: dict[int, NDArray[np.float64]],
     fluoro_sigma_px: float = 0.35,
-    corner_sigma_px: float = 0.3,
+    corner_sigma_px: float = CORNER_SIGMA_PX,
     focal_rel_sigma: float | None = None,
     principal_sigma_px: float | None = None,
     distortion_sigma: tuple[float, ...] | None = None,
@@ -207,7 +210,8 @@ def joint_solve(
     show. ``crowded_bbs``: a BB whose shadow overlaps or nearly touches another's (:func:`_crowding`, at each
     round's starting poses) is charged its detector's pull as extra noise (:data:`CROWDED_BB_PX`); False charges
     it like any BB. ``corner_extra_px``: {marker id: px} extra independent noise of each of that tag's corners
-    (what its four corners' misfit to a view of its square shows, :data:`SQUARE_MISFIT_PER_RMS`); absent: none.
+    (a recovered tag's larger stated noise, what its four corners' misfit to a view of its square shows,
+    :func:`square_misfit_noise_px`); absent: none.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:

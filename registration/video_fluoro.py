@@ -32,13 +32,13 @@ from scipy.spatial.transform import Rotation
 from .camera import PinholeCamera
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .joint_solve import FOCAL_REL_SIGMA, JointSolution, joint_solve, square_misfit_noise_px
+from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, JointSolution, joint_solve, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_claims import claim_from_video, drill_from_marker, fit_constellation
-from .video_markers import VideoDetections
+from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
 
@@ -89,6 +89,14 @@ class DrillRegistration:
     # ((view, (2,) pincushion and S shift at the field's corner, px), ...): each image intensifier view's
     # distortion as the joint solve estimated it (:func:`.joint_solve.project_distorted` draws with it).
     detector_distortion_px: tuple = ()
+
+
+def _corner_extra_px(marker: VideoMarker, *, solve_sigma_px: float = CORNER_SIGMA_PX) -> float:
+    """The extra noise (px) the joint solve charges each corner of ``marker``'s tag over its own ``solve_sigma_px``:
+    its corners' misfit to a view of its square (:func:`.joint_solve.square_misfit_noise_px`) and what its stated
+    corner noise exceeds that by (a recovered tag's ``RECOVERED_CORNER_SIGMA_PX``), added in quadrature."""
+    stated = float(np.sqrt(max(marker.corner_sigma_px**2 - solve_sigma_px**2, 0.0)))
+    return float(np.hypot(square_misfit_noise_px(marker.reprojection_error_px), stated))
 
 
 def register_video_to_fluoro(
@@ -176,7 +184,7 @@ def register_video_to_fluoro(
                 carm_from_marker[i] = start
         solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
-                     corner_extra_px={i: square_misfit_noise_px(vids[i].reprojection_error_px) for i in joinable})
+                     corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}

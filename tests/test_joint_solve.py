@@ -365,3 +365,20 @@ def test_a_tag_charged_its_square_misfit_weighs_less(ap_scene):
     assert np.sqrt(np.mean(np.square(charged))) < 0.9 * np.sqrt(np.mean(np.square(plain))), (np.round(plain, 2), np.round(charged, 2))
     # Within the noise a square's view is expected to show, nothing is charged.
     assert square_misfit_noise_px(0.1) == 0.0 and square_misfit_noise_px(1.0) == pytest.approx(np.sqrt(2.0))
+
+
+def test_a_recovered_tag_is_charged_its_stated_corner_noise_and_its_square_misfit():
+    """What the registration charges each corner of a tag over the solve's 0.3 px: nothing for a detected tag that
+    fits its square (0.1 px stated, 0.06 px misfit); 0.4 px for a recovered one (0.5 px stated); a misfit over 0.2 px
+    adds sqrt(2) times itself in quadrature."""
+    from drillnav.registration.video_fluoro import _corner_extra_px
+    from drillnav.registration.video_markers import VideoMarker
+
+    def tag(*, misfit: float, recovered: bool) -> VideoMarker:
+        return VideoMarker(marker_id=1, corners_px=np.zeros((4, 2)), camera_from_tag=np.eye(4), position_camera_mm=np.zeros(3), covariance_mm2=np.eye(3),
+                           reprojection_error_px=misfit, recovered=recovered, corner_sigma_px=0.5 if recovered else 0.1)
+
+    assert _corner_extra_px(tag(misfit=0.06, recovered=False)) == 0.0
+    assert _corner_extra_px(tag(misfit=0.06, recovered=True)) == pytest.approx(0.4)
+    assert _corner_extra_px(tag(misfit=0.5, recovered=False)) == pytest.approx(0.5 * np.sqrt(2.0))
+    assert _corner_extra_px(tag(misfit=0.5, recovered=True)) == pytest.approx(np.hypot(0.5 * np.sqrt(2.0), 0.4))
