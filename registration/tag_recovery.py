@@ -22,12 +22,12 @@ for there:
    Accepted only when at least ``min_cells`` cells are read, at least ``min_agreement`` of them agree with the
    expected id's code, the border reads black, and the nearest other id of the dictionary (at the same rotation)
    disagrees with what was read in at least ``min_margin_cells`` more cells than the expected id does.
-   A glare spot on a glossy tag can leave fewer cells than that: then, when the ids that may lie there are known
-   (``rivals``: the marker set's other tags of the dictionary not seen elsewhere in the frame; empty when every
-   one is), at least ``min_cells_among_rivals`` cells read,
-   ``min_agreement`` of them agreeing, every rival at every rotation disagreeing in at least ``min_margin_cells``
-   more cells than the expected id, and no id of the dictionary agreeing with more cells than the expected one,
-   suffice. The place itself is the rest of the evidence: a black-bordered square whose four edges lie within
+   A glare spot on a glossy tag can leave fewer cells than that, and an id from outside the marker set can come
+   within that margin of many cells read: then, when the ids that may lie there are known (``rivals``: the marker
+   set's other tags of the dictionary not seen elsewhere in the frame nor placed elsewhere by the registration;
+   empty when none can be there), at least ``min_cells_among_rivals`` cells read, ``min_agreement`` of them
+   agreeing, every rival at every rotation disagreeing in at least ``min_margin_cells`` more cells than the
+   expected id, and no other id of the dictionary agreeing with as many cells as the expected one, suffice. The place itself is the rest of the evidence: a black-bordered square whose four edges lie within
    ``tolerance_px`` of where the registration predicts this marker's tag.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
@@ -453,11 +453,12 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
     common = dict(cells_read=n_read, cells_agreeing=mine, nearest_other_id=other, nearest_other_agreeing=int(agree[other]), edge_fraction=edge_fraction)
     if mine < min_agreement * n_read:
         return TagRecovery(corners_px=None, reason=f"{mine} of {n_read} code cells agree with id {aruco_id} (at least {100 * min_agreement:.0f} % needed)", **common)
-    if n_read >= min_cells:
-        if mine - int(agree[other]) < min_margin_cells:
-            return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+    if n_read >= min_cells and mine - int(agree[other]) >= min_margin_cells:
         return TagRecovery(corners_px=corners, reason="", **common)
-    # Fewer cells than the dictionary-wide rule needs: judged among the ids that may lie there.
+    if n_read >= min_cells and rivals is None:
+        return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+    # Fewer cells than the dictionary-wide rule needs, or an id from outside the set near them: judged among the
+    # ids that may lie there.
     if rivals is None or n_read < min_cells_among_rivals:
         return TagRecovery(corners_px=None, reason=f"only {n_read} code cells readable (at least {min_cells} needed"
                            + (f", or {min_cells_among_rivals} with the marker set's tags known)" if rivals is not None else ")"), **common)

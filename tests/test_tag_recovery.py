@@ -27,7 +27,7 @@ from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, recover_missing_tags, track_frame
-from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, predict_tag_corners, recover_tag
+from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, predict_tag_corners, recover_tag
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 from drillnav.registration.transforms import apply, make_transform
 from drillnav.registration.camera import PinholeCamera
@@ -394,3 +394,30 @@ def test_four_corners_that_are_no_view_of_the_tags_square_are_not_taken_for_it()
     assert found.accepted, found.reason
     assert np.linalg.norm(found.corners_px - skewed, axis=1).max() <= 1.0
     assert 7 not in locator.recover(drawn(skewed), nothing, {7: skewed}).by_id()
+
+
+def test_an_id_from_outside_the_set_near_the_cells_read_does_not_refuse_a_tag_no_rival_can_be():
+    """Tag 7 with 10 of the 12 cells that tell it from its nearest id (66) unreadable (grey between the levels):
+    26 cells read, all agree with 7, and 66 agrees with 24. Against the whole dictionary 66 is too near, and without
+    knowledge of the set the tag is refused; when no tag of the set can be there (``rivals`` empty) 66 is an id from
+    outside the set, and the black-bordered square where 7 is predicted, with 26 cells agreeing and no other id
+    agreeing with as many, is 7. Were 66 a tag of the set that may be there, it is refused again."""
+    codes = dictionary_codes("DICT_6X6_250")
+    flat = codes.reshape(len(codes), -1)
+    differ = np.nonzero(flat[7] != flat[66])[0]
+    assert len(differ) == 12
+    cells = np.full((8, 8), 40.0)
+    cells[1:7, 1:7] = np.where(codes[7] > 0, 190.0, 40.0)
+    for k in differ[2:]:
+        cells[1 + k // 6, 1 + k % 6] = 115.0
+    side, margin = 240, 100
+    image = np.full((side + 2 * margin, side + 2 * margin), 190.0, np.float32)
+    image[margin : margin + side, margin : margin + side] = cv2.resize(cells, (side, side), interpolation=cv2.INTER_NEAREST)
+    image = cv2.GaussianBlur(image, (0, 0), 0.6)
+    truth = np.array([[margin, margin], [margin + side, margin], [margin + side, margin + side], [margin, margin + side]], dtype=np.float64) - 0.5
+    alone = recover_tag(image, truth + 1.5, aruco_id=7)
+    assert not alone.accepted and "id 66 fits" in alone.reason and (alone.cells_read, alone.cells_agreeing, alone.nearest_other_agreeing) == (26, 26, 24)
+    got = recover_tag(image, truth + 1.5, aruco_id=7, rivals=())
+    assert got.accepted, got.reason
+    assert np.linalg.norm(got.corners_px - truth, axis=1).max() <= 0.1
+    assert not recover_tag(image, truth + 1.5, aruco_id=7, rivals=(66,)).accepted
