@@ -91,6 +91,8 @@ def square_misfit_noise_px(reprojection_error_px: float) -> float:
     ``reprojection_error_px`` RMS (``VideoMarker.reprojection_error_px``): 0 up to :data:`SQUARE_MISFIT_MIN_PX`."""
     r = float(reprojection_error_px)
     return SQUARE_MISFIT_PER_RMS * r if r > SQUARE_MISFIT_MIN_PX else 0.0
+
+
 # One marker's BBs in one fluoroscopy view: an image intensifier's distortion (pincushion, S) is smooth over a
 # marker's few centimetres, so it shifts and scales its BBs together; with every fluoroscopy degradation on,
 # 0.77 px shift and 0.24 px scale (independent rest 0.28 px, and the BBs' 0.05 mm manufacturing error 0.32 px

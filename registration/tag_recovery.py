@@ -27,8 +27,9 @@ for there:
    set's other tags of the dictionary not seen elsewhere in the frame nor placed elsewhere by the registration;
    empty when none can be there), at least ``min_cells_among_rivals`` cells read, ``min_agreement`` of them
    agreeing, every rival at every rotation disagreeing in at least ``min_margin_cells`` more cells than the
-   expected id, and no other id of the dictionary agreeing with as many cells as the expected one, suffice. The place itself is the rest of the evidence: a black-bordered square whose four edges lie within
-   ``tolerance_px`` of where the registration predicts this marker's tag.
+   expected id, and no other id of the dictionary agreeing with as many cells as the expected one, suffice. The
+   place itself is the rest of the evidence: a black-bordered square whose four edges lie within ``tolerance_px``
+   of where the registration predicts this marker's tag.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
 are refused, each with its reason.

@@ -28,7 +28,8 @@ __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags"
            "RECOVERED_MAX_SQUARE_RMS_PX"]
 
 # Two tags of the marker set cannot be confused by a recovery when the registration places them at least this much
-# farther apart than its two predictions can both be off (:func:`placed_elsewhere`): a quarter of a 60 px tag.
+# farther apart than its two predictions can both be off (:func:`placed_elsewhere`): about a quarter of a small
+# (60 px) tag's side.
 PLACED_MARGIN_PX = 16.0
 
 # A recovered tag's four corners must be a view of its square (the tag's size, this camera) within this RMS, px
