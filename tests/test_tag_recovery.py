@@ -421,3 +421,42 @@ def test_an_id_from_outside_the_set_near_the_cells_read_does_not_refuse_a_tag_no
     assert got.accepted, got.reason
     assert np.linalg.norm(got.corners_px - truth, axis=1).max() <= 0.1
     assert not recover_tag(image, truth + 1.5, aruco_id=7, rivals=(66,)).accepted
+
+
+def test_a_weak_registration_searches_the_whole_frame_for_the_posed_tags_it_puts_out_of_it():
+    """A marker posed upside down in fluoroscopy (turned 180 deg about its normal, its BBs fitting that pose, as twin
+    seed 6400's marker 31 fitted 9 BBs at 0.48 px) and alone in the frame's detections: its registration is 51 deg
+    off and puts the other posed marker's tag, plainly in view, out of the frame, so no prediction finds it. That tag
+    is searched for in the whole frame and found; the two markers then disagree and the axis is flagged."""
+    from drillnav.registration.pipeline import predict_missing_tags, register_with_recovery
+    from drillnav.registration.marker_pose import MarkerPose
+    from drillnav.registration.transforms import from_rotvec
+    from drillnav.registration.video_fluoro import predicted_axis_error
+
+    scene = make_scene(seed=5, views="ap", render=False)
+    view, camera = scene.views["ap"], scene.calibrated_camera
+    image = scene.render_camera(np.random.default_rng(1))
+    locator = VideoMarkerLocator(camera=camera, marker_ids=scene.marker_set.ids)
+    video = locator.locate(image)
+    turned_id, other_id = 36, 37
+    assert {turned_id, other_id} <= set(video.by_id())
+    rng = np.random.default_rng(3)
+
+    def posed(marker_id, carm_from_marker):
+        design = scene.marker_set.by_id(marker_id)
+        px = view.project(apply(carm_from_marker, design.bb_centers_mm)) + rng.normal(scale=0.3, size=(len(design.bbs), 2))
+        return MarkerPose(marker_id=marker_id, carm_from_marker=carm_from_marker, residual_px=0.3, n_views=1, n_points=len(design.bbs), converged=True,
+                          observations=((view, design.bb_centers_mm, px),))
+
+    poses = (posed(turned_id, scene.carm_from_marker[turned_id] @ from_rotvec(np.array([0.0, 0.0, np.pi]))), posed(other_id, scene.carm_from_marker[other_id]))
+    alone = replace(video, markers=(video.by_id()[turned_id],))
+    reg = register_video_to_fluoro(alone, poses, scene.marker_set, camera, joint=True)
+    truth = TRUE_DRILL_AXIS_CAMERA.transformed(scene.carm_from_drill)
+    assert scene.calibrated_axis_drill.transformed(reg.carm_from_drill).angle_deg(truth) > 30.0
+    assert predict_missing_tags(alone, locator=locator, camera=camera, poses=poses, marker_set=scene.marker_set, carm_from_drill=reg.carm_from_drill,
+                                carm_from_marker=reg.carm_from_marker) == {}
+    found, reg = register_with_recovery(image, alone, locator=locator, camera=camera, poses=poses, marker_set=scene.marker_set)
+    assert found.by_id()[other_id].recovered
+    assert np.linalg.norm(found.by_id()[other_id].corners_px - video.by_id()[other_id].corners_px, axis=1).max() < 1.0
+    assert set(reg.used_ids) == {turned_id, other_id}
+    assert not predicted_axis_error(found, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm).reliable
