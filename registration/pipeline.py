@@ -254,8 +254,9 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # Nothing predicted in the frame. A registration on one marker (or two) may be far off, its marker posed
         # upside down in fluoroscopy (twin seed 6400: a 180 deg turn fitted 9 BBs at 0.48 px): the posed markers it
         # puts out of the frame are searched for in the whole frame, with no prediction.
-        if weak and not searched and _missing(video, poses, locator):
-            more = locator.search(image, video, {p.marker_id for p in _missing(video, poses, locator)})
+        unseen = {p.marker_id for p in _missing(video, poses, locator)} if weak and not searched else set()
+        if unseen:
+            more = locator.search(image, video, unseen)
             if more is not video:
                 return more, register_video_to_fluoro(more, poses, marker_set, camera, joint=joint)
         return video, reg
