@@ -250,32 +250,27 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
                                         carm_from_drill=reg.mirror_carm_from_drill)
         expected = _merged(expected, mirrored)
     weak = search and joint and len(reg.used_ids) < HORN_MIN_MARKERS
-    if not expected:
-        # Nothing predicted in the frame. A registration on one marker (or two) may be far off, its marker posed
-        # upside down in fluoroscopy (twin seed 6400: a 180 deg turn fitted 9 BBs at 0.48 px): the posed markers it
-        # puts out of the frame are searched for in the whole frame, with no prediction.
-        unseen = {p.marker_id for p in _missing(video, poses, locator)} if weak and not searched else set()
-        if unseen:
-            more = locator.search(image, video, unseen)
-            if more is not video:
-                return more, register_video_to_fluoro(more, poses, marker_set, camera, joint=joint)
-        return video, reg
-    # Where the registration puts every posed marker's tag: one placed away from a missing tag is no rival to its identity.
-    placed = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                carm_from_marker=reg.carm_from_marker)
-    if reg.mirror_carm_from_drill is not None:
-        placed = _merged(placed, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
-                                                    carm_from_drill=reg.mirror_carm_from_drill))
-    # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
-    # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
-    # also tries the prediction shifted.
-    more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed)
+    more = video
+    if expected:
+        # Where the registration puts every posed marker's tag: one placed away from a missing tag is no rival to its identity.
+        placed = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                    carm_from_marker=reg.carm_from_marker)
+        if reg.mirror_carm_from_drill is not None:
+            placed = _merged(placed, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                                        carm_from_drill=reg.mirror_carm_from_drill))
+        # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
+        # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
+        # also tries the prediction shifted.
+        more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed)
     left = set(expected) - {m.marker_id for m in more.markers}
-    if weak:  # and those it puts out of the frame (see above)
+    if weak:
+        # A registration on one marker (or two) may be far off, its marker posed upside down in fluoroscopy (twin
+        # seed 6400: a 180 deg turn fitted 9 BBs at 0.48 px): the posed markers it puts out of the frame are searched for too.
         left |= {p.marker_id for p in _missing(more, poses, locator)}
     if search and not searched and left:
         # Predicted in the frame but not where the prediction put it (a registration on one or two markers is
-        # off by more than the recovery's tolerance): searched for with no prediction, in the whole frame.
+        # off by more than the recovery's tolerance), or put out of it by a weak one: searched for with no
+        # prediction, in the whole frame.
         more = locator.search(image, more, left)
     if more is video:
         return video, reg
