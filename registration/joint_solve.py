@@ -188,6 +188,7 @@ def joint_solve(
     min_markers: int = 3,
     crowded_bbs: bool = True,
     corner_extra_px: dict[int, float] | None = None,
+    fluoro_only: dict[int, tuple[tuple, NDArray[np.float64]]] | None = None,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
 
@@ -214,6 +215,10 @@ def joint_solve(
     it like any BB. ``corner_extra_px``: {marker id: px} extra independent noise of each of that tag's corners
     (a recovered tag's larger stated noise, what its four corners' misfit to a view of its square shows,
     :func:`square_misfit_noise_px`); absent: none.
+    ``fluoro_only``: {marker id: (observations as above, starting ``carm_from_marker`` (4, 4))} of markers posed in
+    fluoroscopy that the camera does not see. Where a view's intensifier distortion is estimated, their BBs join
+    the solve with poses of their own (in no tag corner, no vote, not in ``used_ids``): more of the field shows
+    the distortion. Elsewhere they add nothing and are left out.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -238,8 +243,9 @@ def joint_solve(
     corner_extra = {i: float(v) for i, v in (corner_extra_px or {}).items() if v > 0}
     if not all(np.isfinite(v) for v in corner_extra.values()):
         raise ValueError(f"a tag's extra corner noise must be finite, got {corner_extra}")
+    anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra)
+            crowded_bbs, corner_extra, anchors)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
@@ -464,6 +470,21 @@ def _distorted_views(ids, observations) -> list:
     return views
 
 
+def _distortion_anchors(fluoro_only: dict, ids, observations) -> dict[int, tuple[tuple, NDArray[np.float64]]]:
+    """Of ``fluoro_only``, the markers not in ``ids`` seen (by 3 or more BBs) in two or more of the views whose
+    distortion the solve estimates, each with only those views' observations. In one view a marker's own pose
+    takes up the distortion's shift there; two views' rays must meet, which the shift would stop."""
+    dist_views = _distorted_views(ids, observations)
+    out = {}
+    for i, (obs, pose) in sorted(fluoro_only.items()):
+        if i in ids:
+            continue
+        kept = tuple(o for o in obs if any(o[0] is v for v in dist_views) and len(o[1]) >= 3)
+        if len({id(o[0]) for o in kept}) >= 2:
+            out[i] = (kept, np.asarray(pose, dtype=np.float64))
+    return out
+
+
 def project_distorted(view, points_carm_mm: NDArray[np.float64], distortion: tuple = ()) -> NDArray[np.float64]:
     """Pixels (N, 2) of points (N, 3) in ``view``, moved by the view's estimated intensifier distortion if any."""
     uv = view.project(points_carm_mm)
@@ -573,14 +594,22 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], *, loss: str) -> JointSolution:
+           corner_extra: dict[int, float], anchors: dict, *, loss: str) -> JointSolution:
+    # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
+    # one has a pose; only the first m have tag corners.
     m = len(ids)
-    poses0 = np.stack([markers0[i] for i in ids])
+    aids = [i for i in sorted(anchors) if i not in ids]
+    every_id = list(ids) + aids
+    ma = len(every_id)
+    if aids:
+        observations = {**{i: anchors[i][0] for i in aids}, **observations}
+        markers0 = {**{i: anchors[i][1] for i in aids}, **markers0}
+    poses0 = np.stack([markers0[i] for i in every_id])
     pivots = poses0[:, :3, 3].copy()
-    pivot_d = pivots.mean(axis=0)
+    pivot_d = pivots[:m].mean(axis=0)  # the seen markers' centroid
     # Fluoroscopy rows: one block per (marker, view), projected with the view's 3x4 matrix.
     f_obj, f_img, f_marker, f_p = [], [], [], []
-    for k, i in enumerate(ids):
+    for k, i in enumerate(every_id):
         for view, obj, img in observations[i]:
             f_obj.append(np.asarray(obj, dtype=np.float64))
             f_img.append(np.asarray(img, dtype=np.float64))
@@ -594,17 +623,17 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     dist_views = _distorted_views(ids, observations)
     n_dv = len(dist_views)
     f_dv = np.concatenate([np.full(len(obj), next((j for j, v in enumerate(dist_views) if v is view), -1))
-                           for i in ids for view, obj, _ in observations[i]])
-    f_center = np.concatenate([np.repeat(view.center_px[None], len(obj), axis=0) for i in ids for view, obj, _ in observations[i]])
-    f_corner_r = np.concatenate([np.full(len(obj), view.corner_radius_px) for i in ids for view, obj, _ in observations[i]])
+                           for i in every_id for view, obj, _ in observations[i]])
+    f_center = np.concatenate([np.repeat(view.center_px[None], len(obj), axis=0) for i in every_id for view, obj, _ in observations[i]])
+    f_corner_r = np.concatenate([np.full(len(obj), view.corner_radius_px) for i in every_id for view, obj, _ in observations[i]])
     dist_sigma = np.repeat([v.distortion_sigma_px for v in dist_views], 2).astype(np.float64)
     f_has = f_dv >= 0
     # A BB crowded by another's shadow (at the starting poses, which the robust rounds bring to the solution) is
     # charged its detector's pull (CROWDED_BB_PX).
     extra = None
     if crowding:
-        ratios = _crowding({i: observations[i] for i in ids}, markers0, marker_set)
-        extra = [crowded_bb_sigma_px(r) for i in ids for r in ratios[i]]
+        ratios = _crowding({i: observations[i] for i in every_id}, markers0, marker_set)
+        extra = [crowded_bb_sigma_px(r) for i in every_id for r in ratios[i]]
     wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, bb_scale_px, extra)
     # A corner left out as an outlier is NaN in ``corners_px``: its tag is whitened over the corners it keeps.
     c_keep = [np.all(np.isfinite(np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)), axis=1) for i in ids]
@@ -618,8 +647,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
-    n_par = 6 + 6 * m + N_INTRINSICS + 2 * n_dv
-    i_dist = 6 + 6 * m + N_INTRINSICS
+    n_par = 6 + 6 * ma + N_INTRINSICS + 2 * n_dv
+    i_dist = 6 + 6 * ma + N_INTRINSICS
 
     def residuals(xs, every_corner: bool = False):
         """Normalised residuals (P, R) of P parameter vectors (P, n_par) at once; ``every_corner``: the
@@ -628,8 +657,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         rd = Rotation.from_rotvec(xs[:, :3]).as_matrix()  # (P, 3, 3)
         rot_d = rd @ drill0[:3, :3]
         t_d = np.einsum("pij,j->pi", rd, drill0[:3, 3] - pivot_d) + pivot_d + xs[:, 3:6]
-        dm = xs[:, 6 : 6 + 6 * m].reshape(n, m, 6)
-        rm = Rotation.from_rotvec(dm[..., :3].reshape(-1, 3)).as_matrix().reshape(n, m, 3, 3)
+        dm = xs[:, 6 : 6 + 6 * ma].reshape(n, ma, 6)
+        rm = Rotation.from_rotvec(dm[..., :3].reshape(-1, 3)).as_matrix().reshape(n, ma, 3, 3)
         rot_m = rm @ poses0[None, :, :3, :3]
         t_m = np.einsum("pmij,mj->pmi", rm, poses0[:, :3, 3] - pivots) + pivots + dm[..., 3:]
         pc = np.einsum("pnij,nj->pni", rot_m[:, f_mk], f_obj_a) + t_m[:, f_mk]
@@ -643,7 +672,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         cc = np.einsum("pnij,nj->pni", rot_m[:, mk], obj) + t_m[:, mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
         xy0 = cd[..., :2] / cd[..., 2:3]
-        intr = xs[:, 6 + 6 * m : i_dist]
+        intr = xs[:, 6 + 6 * ma : i_dist]
         xy = camera.distort_normalized(xy0.reshape(-1, 2)).reshape(n, -1, 2) + _distortion_change(xy0, intr[:, 3:])
         s = 1.0 + intr[:, :1]
         u = fx0 * s * xy[..., 0] + k0[0, 1] * xy[..., 1] + cx0 + intr[:, 1:2]
@@ -665,16 +694,16 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     n_glob = N_INTRINSICS + 2 * n_dv  # intrinsics and the views' distortion: one column each
     steps = np.zeros((6 + n_glob + 6, n_par))
     steps[np.arange(6), np.arange(6)] = h
-    steps[6 + np.arange(n_glob), 6 + 6 * m + np.arange(n_glob)] = h
+    steps[6 + np.arange(n_glob), 6 + 6 * ma + np.arange(n_glob)] = h
     for k in range(6):
-        steps[6 + n_glob + k, 6 + k : 6 + 6 * m : 6] = h
+        steps[6 + n_glob + k, 6 + k : 6 + 6 * ma : 6] = h
 
     def jacobian(x):
         f = residuals(np.vstack([x, x + steps]))
         diff = (f[1:] - f[0]) / h
         jac = np.zeros((f.shape[1], n_par))
         jac[:, :6] = diff[:6].T
-        jac[:, 6 + 6 * m :] = diff[6 : 6 + n_glob].T
+        jac[:, 6 + 6 * ma :] = diff[6 : 6 + n_glob].T
         for k in range(6):
             jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[6 + n_glob + k, in_marker]
         return jac
@@ -683,8 +712,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
 
     def unpack(x):
         drill = perturb_about(x[:6], drill0, pivot_d)
-        rot, t = _perturb_batch(x[6 : 6 + 6 * m].reshape(m, 6), poses0, pivots)
-        return drill, rot, t, x[6 + 6 * m :]
+        rot, t = _perturb_batch(x[6 : 6 + 6 * ma].reshape(ma, 6), poses0, pivots)
+        return drill, rot, t, x[6 + 6 * ma :]
 
     drill, rot, t, _ = unpack(sol.x)
     distortion = tuple((view, sol.x[i_dist + 2 * j : i_dist + 2 * j + 2].copy()) for j, view in enumerate(dist_views))

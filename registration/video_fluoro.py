@@ -184,7 +184,9 @@ def register_video_to_fluoro(
                 carm_from_marker[i] = start
         solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
-                     corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable})
+                     corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
+                     fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
+                                  if i not in joinable and p.converged and p.mirror_carm_from_marker is None})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
