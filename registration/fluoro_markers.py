@@ -51,6 +51,10 @@ class DetectedMarker:
 class RejectedRing:
     reason: str
     center_px: NDArray[np.float64]
+    # The marker whose pattern the ring's BBs match at a cost over identify's limit but within
+    # CORROBORATED_MAX_COST_MM (none identified in the view by that id): an identity that stands only where the
+    # camera sees that marker's tag (:attr:`.marker_pose.MarkerPose.needs_camera`).
+    candidate: "DetectedMarker | None" = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,6 +67,22 @@ class FluoroDetections:
 
     def by_id(self) -> dict[int, DetectedMarker]:
         return {m.marker_id: m for m in self.markers}
+
+    def candidates(self) -> tuple[DetectedMarker, ...]:
+        """The rejected rings' candidate markers (:attr:`RejectedRing.candidate`) whose id the view did not identify,
+        one per id (an id two rings match on different BBs is left out: which one it is, is not guessed)."""
+        found = {m.marker_id for m in self.markers}
+        by_id: dict[int, list[DetectedMarker]] = {}
+        for r in self.rejected:
+            if r.candidate is not None and r.candidate.marker_id not in found:
+                by_id.setdefault(r.candidate.marker_id, []).append(r.candidate)
+        out = []
+        for group in by_id.values():
+            best = min(group, key=lambda m: m.identification_cost_mm)
+            own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
+            if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in group):
+                out.append(best)
+        return tuple(sorted(out, key=lambda m: m.marker_id))
 
 
 def _blobs(bb_image: NDArray[np.float32], threshold: float) -> list[tuple[NDArray[np.float64], float]]:
@@ -158,7 +178,8 @@ def _coarsened(found: FluoroDetections, factor: int) -> FluoroDetections:
         ellipse = (tuple(float(v) for v in px([cx, cy])), (d1 / factor, d2 / factor), angle)
         return replace(m, bbs=tuple(bb(b) for b in m.bbs), ring_ellipse=ellipse)
 
-    return FluoroDetections(markers=tuple(marker(m) for m in found.markers), rejected=tuple(replace(r, center_px=px(r.center_px)) for r in found.rejected),
+    return FluoroDetections(markers=tuple(marker(m) for m in found.markers), rejected=tuple(replace(r, center_px=px(r.center_px), candidate=None if r.candidate is None else marker(r.candidate))
+                                                                                for r in found.rejected),
                             blobs=tuple(bb(b) for b in found.blobs))
 
 
@@ -276,6 +297,16 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
 
 
+# identify's own limit on a pattern's mean alignment cost, and the looser one for a ring whose identity the camera
+# corroborates (its tag seen in the frame): on the operating-room twin (seeds 6400-6405 and 6500-6505, every
+# pair) 12 rings rejected for cost with their best marker not identified elsewhere in the view matched within
+# 0.91-1.20 mm, every one the true marker; the wrong matches of such rings cost 1.53 mm and more (0.97 mm for one
+# whose best marker the view had already identified). With identify's margin over the runner-up applied, the
+# candidates kept there are 7, one of them wrong, on 3 BBs (too few for register_markers to pose).
+IDENTIFY_MAX_COST_MM = 0.9
+CORROBORATED_MAX_COST_MM = 1.2
+
+
 def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wire_px: float, min_ring_px: float, max_ring_px: float,
                  shape: tuple[int, int]) -> "DetectedMarker | RejectedRing | None":
     """One piece of wire: the marker its ring identifies, why it identifies none, or None (too small to be a ring)."""
@@ -305,8 +336,27 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
     centers = np.array([b[0] for b in inside])
     diam_px = np.array([b[1] for b in inside])
     plane = _rectify(centers, ellipse) / scale
-    # The central BB is a small BB near the ellipse centre (perspective shifts it a little): try each.
-    ident, last_error = None, None
+    ident, diam_mm, last_error = _identify_ring(plane, diam_px, marker_set, max_cost_mm=IDENTIFY_MAX_COST_MM)
+    if ident is None:
+        reason = str(last_error) if last_error else "no central BB found inside the ring"
+        candidate = None
+        if isinstance(last_error, MarkerNotIdentified) and str(last_error).startswith("no marker matches"):
+            loose, loose_mm, _ = _identify_ring(plane, diam_px, marker_set, max_cost_mm=CORROBORATED_MAX_COST_MM)
+            if loose is not None:
+                candidate = _detected(loose, centers, diam_px, loose_mm, ellipse)
+        return RejectedRing(reason=reason, center_px=np.array([cx, cy]), candidate=candidate)
+    return _detected(ident, centers, diam_px, diam_mm, ellipse)
+
+
+def _detected(ident, centers, diam_px, diam_mm, ellipse) -> DetectedMarker:
+    bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
+    return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost)
+
+
+def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float):
+    """(identification or None, BB diameters mm, the last identification error or None) of a ring's BBs rectified
+    into its plane (N, 2) mm, identified at ``max_cost_mm``."""
+    ident, diam_mm, last_error = None, None, None
     order = np.argsort(np.linalg.norm(plane, axis=1))
     # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
     # blob smaller than any BB inside the ring (a K-wire's end, a clamp's corner, a BB half under metal)
@@ -318,7 +368,7 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
             if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
                 continue
             try:
-                candidate = identify(plane - plane[c], sizes_mm, marker_set)
+                candidate = identify(plane - plane[c], sizes_mm, marker_set, max_cost_mm=max_cost_mm)
             except MarkerNotIdentified as exc:
                 last_error = exc
                 continue
@@ -326,22 +376,18 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
                 ident, diam_mm = candidate, sizes_mm
         if ident is not None:
             break
-    if ident is None and last_error is None and len(inside) >= 4:
+    if ident is None and last_error is None and len(plane) >= 4:
         # No blob where the central BB belongs (dense bone, a K-wire or the dose hid it): the ring's centre stands
         # in for it (weak perspective: within a fraction of a mm in the plane at these tilts), the smallest blob
         # is one of the code's 2.0 mm BBs, and the central BB is the pattern's one missing BB.
         sizes_mm = diam_px * (2.0 / diam_px.min())
         try:
-            ident, diam_mm = identify(plane, sizes_mm, marker_set), sizes_mm
+            ident, diam_mm = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm), sizes_mm
         except MarkerNotIdentified as exc:
             last_error = exc
         if ident is not None and np.any(ident.bb_index == 0):
             ident, last_error = None, None  # a blob taken for the central BB after all: not the case this is for
-    if ident is None:
-        reason = str(last_error) if last_error else "no central BB found inside the ring"
-        return RejectedRing(reason=reason, center_px=np.array([cx, cy]))
-    bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
-    return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost)
+    return ident, diam_mm, last_error
 
 
 def _wire_components(wire_image: NDArray[np.float32], *, high: float, low: float, min_extent_px: float):

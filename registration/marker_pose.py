@@ -48,6 +48,10 @@ class MarkerPose:
     # claimed there. A marker the camera sees but fluoroscopy did not identify (edge-on, ambiguous ring)
     # claims its BBs among them by projection (:mod:`.video_claims`).
     view_blobs: tuple = ()
+    # Posed from rings whose BB pattern matched this marker only at the looser cost a second witness allows
+    # (:data:`.fluoro_markers.CORROBORATED_MAX_COST_MM`): its identity stands where the camera sees its tag, and
+    # nowhere else (:func:`.video_fluoro.register_video_to_fluoro` leaves it out otherwise).
+    needs_camera: bool = False
 
     @property
     def position_carm_mm(self) -> NDArray[np.float64]:
@@ -166,8 +170,22 @@ def register_markers(
             obj = design.bb_centers_mm[m.bb_index[ok]]
             img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
             per_marker.setdefault(m.marker_id, []).append((view, obj, img))
+    # Rings whose pattern matched a marker only at the looser cost, that marker identified in no view: posed too,
+    # marked as needing the camera's corroboration.
+    identified = set(per_marker) | {m.marker_id for det in detections for m in det.markers}
+    per_candidate: dict[int, list] = {}
+    for det, view in zip(detections, views):
+        for m in det.candidates():
+            ok = m.bb_index >= 0
+            if m.marker_id in identified or ok.sum() < 4:
+                continue
+            obj = marker_set.by_id(m.marker_id).bb_centers_mm[m.bb_index[ok]]
+            img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
+            per_candidate.setdefault(m.marker_id, []).append((view, obj, img))
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
+        poses += [replace(p, needs_camera=True) for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_candidate.items()))
+                  if p is not None]
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
     # leaves them free, for the video's identities to claim.

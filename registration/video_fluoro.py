@@ -121,7 +121,12 @@ def register_video_to_fluoro(
     flags the axis unreliable when its bound is over the limits. Refused (``MarkersNotFound``) below
     ``min_markers`` markers in common or below 4 BBs in all. Markers are rejected as outliers only while
     3 or more remain: with two, neither can be told from the other.
+
+    A marker posed from a ring identified only at the looser cost (``MarkerPose.needs_camera``) counts only when the
+    camera sees its tag; otherwise it is left out here.
     """
+    seen = {m.marker_id for m in video.markers}
+    marker_poses = tuple(p for p in marker_poses if not p.needs_camera or p.marker_id in seen)
     if joint:
         marker_poses = claim_from_video(video, tuple(marker_poses), marker_set)
     every = {p.marker_id: p for p in marker_poses}
@@ -186,7 +191,7 @@ def register_video_to_fluoro(
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
                      corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
                      fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
-                                  if i not in joinable and p.converged and p.mirror_carm_from_marker is None})
+                                  if i not in joinable and p.converged and p.mirror_carm_from_marker is None and not p.needs_camera})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}

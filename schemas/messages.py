@@ -310,6 +310,8 @@ class MarkerPoseMsg:
     residual_px: float = Field(ge=0)
     views: NonNegInt
     converged: bool
+    # Posed from rings matched only at the looser cost: counts only where the camera sees its tag.
+    needs_camera: bool = False
 
 
 @_bind
