@@ -318,6 +318,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     Raises ``MarkersNotFound`` when no marker of the set is seen, and the
     registration's own errors (too few shared markers) as they are.
     """
+    fluoro_poses = poses  # as fluoroscopy gave them: a lone marker's is judged on them, not on a joint solve's refinement
     video = calibration.locator.locate(image)
     recover = dict(locator=calibration.locator, camera=calibration.camera)
     in_use = refinement.poses if refinement_fits(refinement, poses=poses, calibration=calibration) else poses
@@ -345,6 +346,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     work = axis.closest_point(centroid)
     u = calibration.axis_uncertainty
     pe = predicted_axis_error(video, poses, reg, calibration.axis_drill, working_point_carm_mm=work, axis_sigma_mm=u.sigma_mm,
-                              axis_sigma_deg=u.per_direction_deg, position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg)  # vectorised: ~1 ms
+                              axis_sigma_deg=u.per_direction_deg, position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg,
+                              fluoro_poses=fluoro_poses)  # vectorised: ~1 ms
     return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
                      refinement=refinement)

@@ -331,6 +331,7 @@ def predicted_axis_error(
     seed: int = 0,
     position_limit_mm: float = RELIABLE_POSITION_MM,
     angle_limit_deg: float = RELIABLE_ANGLE_DEG,
+    fluoro_poses: tuple[MarkerPose, ...] | None = None,
 ) -> PredictedError:
     """Error bounds of the axis from every input's uncertainty.
 
@@ -342,7 +343,11 @@ def predicted_axis_error(
     focal-length scale error, the fluoroscopy X_C with ``fluoro_sigma_mm``,
     each registered by Horn. The 90th and 95th percentiles of the axis's
     displacement at the working point and of its angle are the bounds;
-    ``reliable`` is False when a 90 % bound exceeds its limit.
+    ``reliable`` is False when a 90 % bound exceeds its limit, and when the registration rests on one marker whose
+    fluoroscopy pose does not stand alone (:func:`stands_alone`, judged on ``fluoro_poses``, the poses fluoroscopy
+    gave before any joint solve refined them; default ``marker_poses``): nothing then checks that marker's BB
+    correspondences, and a wrong one fits as well as the truth (on fresh seeds, a registration 128 mm and 59 deg
+    off under a 2.2 mm bound, on a marker whose own pose missed its BBs by 15 px).
 
     ``axis_sigma_mm`` (per axis) and ``axis_sigma_deg`` (per tilt component) are the drill axis's
     calibration uncertainty: drill.json's ``residual_mm`` and ``residual_deg`` / sqrt(2) (an RMS tilt of
@@ -400,5 +405,18 @@ def predicted_axis_error(
         p90, p95, a90, a95 = max(p90, alt_pos), max(p95, alt_pos), max(a90, alt_ang), max(a95, alt_ang)
     return PredictedError(
         position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95, position90_mm=p90, angle90_deg=a90,
-        reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg),
+        reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg) and not lone_unchecked(registration, marker_poses if fluoro_poses is None else fluoro_poses),
     )
+
+
+def stands_alone(pose: MarkerPose | None) -> bool:
+    """Whether fluoroscopy alone fixed ``pose``: it converged on its BBs, no mirror solution is open, and its ring was
+    identified at identify's own cost (not ``needs_camera``)."""
+    return pose is not None and bool(pose.converged) and pose.mirror_carm_from_marker is None and not pose.needs_camera
+
+
+def lone_unchecked(registration: DrillRegistration, fluoro_poses: tuple[MarkerPose, ...]) -> bool:
+    """A registration on one marker whose fluoroscopy pose (of ``fluoro_poses``) does not stand alone."""
+    if len(registration.used_ids) != 1:
+        return False
+    return not stands_alone({p.marker_id: p for p in fluoro_poses}.get(registration.used_ids[0]))

@@ -14,7 +14,7 @@ from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
 from drillnav.registration.errors import MarkersNotFound
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
+from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro, stands_alone
 from drillnav.registration.video_markers import VideoMarkerLocator
 
 
@@ -102,3 +102,32 @@ def test_no_marker_in_common_or_too_few_bbs_is_refused(two_views):
     seen = replace(video, markers=tuple(m for m in video.markers if m.marker_id == ids[0]))
     with pytest.raises(MarkersNotFound, match="3 BBs"):
         register_video_to_fluoro(seen, (three,), scene.marker_set, scene.calibrated_camera)
+
+
+def test_one_marker_whose_fluoroscopy_pose_does_not_stand_alone_is_never_reliable(two_views):
+    """Nothing checks a lone marker's BB correspondences: a wrong one fits as well as the truth. The axis from one
+    marker is reliable only when fluoroscopy alone fixed that marker's pose (converged, no open mirror, its ring
+    identified at identify's own cost); otherwise it is flagged whatever its bound."""
+    scene, poses, video, carm_from_drill = two_views
+    entry = scene.corridor_entry_carm_mm
+    reliable_alone = []
+    for i in _common(two_views):
+        _, _, pe, reg = _register(two_views, [i])
+        assert reg.used_ids == (i,)
+        reliable_alone.append(pe.reliable)
+        seen = replace(video, markers=tuple(m for m in video.markers if m.marker_id == i))
+        lone = next(p for p in poses if p.marker_id == i)
+        assert stands_alone(lone)
+        for doubtful in (replace(lone, converged=False), replace(lone, mirror_carm_from_marker=lone.carm_from_marker.copy()),
+                         replace(lone, needs_camera=True)):
+            assert not stands_alone(doubtful)
+            # The same registration, judged on the doubtful fluoroscopy pose: flagged, its bound unchanged.
+            flagged = predicted_axis_error(seen, (doubtful,), reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
+            assert not flagged.reliable
+            assert flagged.position90_mm == pytest.approx(pe.position90_mm)
+            # A joint solve's refinement marks the pose converged: the fluoroscopy poses given still decide.
+            refined = predicted_axis_error(seen, (replace(doubtful, converged=True, mirror_carm_from_marker=None, needs_camera=False),), reg,
+                                           scene.calibrated_axis_drill, working_point_carm_mm=entry, fluoro_poses=(doubtful,))
+            assert not refined.reliable
+    # Judged on their own (standing) poses, some lone markers are reliable: the rule is what flags the others.
+    assert any(reliable_alone), reliable_alone
