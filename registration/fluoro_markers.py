@@ -78,9 +78,8 @@ class FluoroDetections:
                 by_id.setdefault(r.candidate.marker_id, []).append(r.candidate)
         out = []
         for group in by_id.values():
-            best = min(group, key=lambda m: m.identification_cost_mm)
-            own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
-            if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in group):
+            best = _one_ring(group)
+            if best is not None:
                 out.append(best)
         return tuple(sorted(out, key=lambda m: m.marker_id))
 
@@ -433,6 +432,14 @@ def _hysteresis(image: NDArray[np.float32], *, high: float, low: float) -> NDArr
     return keep[labels].astype(np.uint8)
 
 
+def _one_ring(found: list[DetectedMarker]) -> DetectedMarker | None:
+    """Detections of one id: the best-fitting one when all are pieces of one ring (each shares at least 3 BB centres
+    with it), None when they lie on different BBs (two rings claiming one identity)."""
+    best = min(found, key=lambda m: m.identification_cost_mm)
+    own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
+    return best if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in found) else None
+
+
 def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMarker], list[RejectedRing]]:
     """One detection per id: the pieces of one ring, each identified alike, kept once; two rings with one id rejected.
 
@@ -447,9 +454,8 @@ def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMark
     kept: list[DetectedMarker] = []
     rejected: list[RejectedRing] = []
     for marker_id, found in by_id.items():
-        best = min(found, key=lambda m: m.identification_cost_mm)
-        own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
-        if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in found):
+        best = _one_ring(found)
+        if best is not None:
             kept.append(best)
             continue
         for m in found:
