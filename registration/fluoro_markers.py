@@ -55,6 +55,10 @@ class RejectedRing:
     # CORROBORATED_MAX_COST_MM (none identified in the view by that id): an identity that stands only where the
     # camera sees that marker's tag (:attr:`.marker_pose.MarkerPose.needs_camera`).
     candidate: "DetectedMarker | None" = None
+    # The ring's BBs matched against each marker of the set on its own, at up to LOOSE_MAX_COST_MM (rings that
+    # identify no marker for their pattern's cost or margin, with 4 or more BBs): hypotheses that stand only where
+    # the camera's constellation of markers bears one out in fluoroscopy (:func:`.video_claims.corroborate_loose`).
+    loose: "tuple[DetectedMarker, ...]" = ()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -177,8 +181,9 @@ def _coarsened(found: FluoroDetections, factor: int) -> FluoroDetections:
         ellipse = (tuple(float(v) for v in px([cx, cy])), (d1 / factor, d2 / factor), angle)
         return replace(m, bbs=tuple(bb(b) for b in m.bbs), ring_ellipse=ellipse)
 
-    return FluoroDetections(markers=tuple(marker(m) for m in found.markers), rejected=tuple(replace(r, center_px=px(r.center_px), candidate=None if r.candidate is None else marker(r.candidate))
-                                                                                for r in found.rejected),
+    return FluoroDetections(markers=tuple(marker(m) for m in found.markers),
+                            rejected=tuple(replace(r, center_px=px(r.center_px), candidate=None if r.candidate is None else marker(r.candidate),
+                                                   loose=tuple(marker(m) for m in r.loose)) for r in found.rejected),
                             blobs=tuple(bb(b) for b in found.blobs))
 
 
@@ -304,6 +309,10 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
 # candidates kept there are 7, one of them wrong, on 3 BBs (too few for register_markers to pose).
 IDENTIFY_MAX_COST_MM = 0.9
 CORROBORATED_MAX_COST_MM = 1.2
+# A ring that identifies no marker is matched against each marker of the set alone, up to this cost: in low dose and
+# behind dense bone the true marker's pattern costs 1.0-2.0 mm, often with no margin over the others (seeds 6200-6201,
+# measured). Such a match names nothing by itself; the camera's constellation settles it (video_claims).
+LOOSE_MAX_COST_MM = 2.0
 
 
 def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wire_px: float, min_ring_px: float, max_ring_px: float,
@@ -343,13 +352,26 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
             loose, loose_mm, _ = _identify_ring(plane, diam_px, marker_set, max_cost_mm=CORROBORATED_MAX_COST_MM)
             if loose is not None:
                 candidate = _detected(loose, centers, diam_px, loose_mm, ellipse)
-        return RejectedRing(reason=reason, center_px=np.array([cx, cy]), candidate=candidate)
+        return RejectedRing(reason=reason, center_px=np.array([cx, cy]), candidate=candidate,
+                            loose=_loose(plane, diam_px, centers, ellipse, marker_set) if isinstance(last_error, MarkerNotIdentified) else ())
     return _detected(ident, centers, diam_px, diam_mm, ellipse)
 
 
 def _detected(ident, centers, diam_px, diam_mm, ellipse) -> DetectedMarker:
     bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
     return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost)
+
+
+def _loose(plane, diam_px, centers, ellipse, marker_set: MarkerSet) -> tuple[DetectedMarker, ...]:
+    """The ring's BBs (4 or more) matched against each marker of the set alone, those within LOOSE_MAX_COST_MM."""
+    if len(plane) < 4:
+        return ()
+    out = []
+    for marker_id in marker_set.ids:
+        ident, diam_mm, _ = _identify_ring(plane, diam_px, marker_set.subset([marker_id]), max_cost_mm=LOOSE_MAX_COST_MM)
+        if ident is not None and int((ident.bb_index >= 0).sum()) >= 4:
+            out.append(_detected(ident, centers, diam_px, diam_mm, ellipse))
+    return tuple(out)
 
 
 def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float):

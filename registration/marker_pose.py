@@ -52,6 +52,10 @@ class MarkerPose:
     # (:data:`.fluoro_markers.CORROBORATED_MAX_COST_MM`): its identity stands where the camera sees its tag, and
     # nowhere else (:func:`.video_fluoro.register_video_to_fluoro` leaves it out otherwise).
     needs_camera: bool = False
+    # Posed from a ring that identified no marker, matched against this marker alone
+    # (:attr:`.fluoro_markers.RejectedRing.loose`): a hypothesis, one of several a ring may carry, until the
+    # camera's constellation bears it out (:func:`.video_claims.corroborate_loose`); never counted otherwise.
+    loose: bool = False
 
     @property
     def position_carm_mm(self) -> NDArray[np.float64]:
@@ -182,10 +186,26 @@ def register_markers(
             obj = marker_set.by_id(m.marker_id).bb_centers_mm[m.bb_index[ok]]
             img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
             per_candidate.setdefault(m.marker_id, []).append((view, obj, img))
+    # Rings that identified no marker, matched against each marker alone (identified in no view, no candidate): per
+    # marker the ring it matches best, posed as a hypothesis for the camera's constellation to settle.
+    per_loose: dict[int, tuple] = {}
+    for det, view in zip(detections, views):
+        for r in det.rejected:
+            for m in r.loose:
+                if m.marker_id in identified or m.marker_id in per_candidate:
+                    continue
+                ok = m.bb_index >= 0
+                obj = marker_set.by_id(m.marker_id).bb_centers_mm[m.bb_index[ok]]
+                img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
+                key = (m.identification_cost_mm, -int(ok.sum()))
+                if m.marker_id not in per_loose or key < per_loose[m.marker_id][0]:
+                    per_loose[m.marker_id] = (key, [(view, obj, img)])
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
         poses += [replace(p, needs_camera=True) for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_candidate.items()))
                   if p is not None]
+        poses += [replace(p, needs_camera=True, loose=True) for p in pool.map(lambda item: _try_solve(item[0], item[1][1], max_residual_px), sorted(per_loose.items()))
+                  if p is not None and p.converged]
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
     # leaves them free, for the video's identities to claim.
@@ -199,6 +219,9 @@ def register_markers(
     # claims its BBs there by projection from its pose, then is solved again over both views.
     out = []
     for pose in poses:
+        if pose.loose:  # a hypothesis: it claims nothing in the other views before the camera bears it out
+            out.append(replace(pose, view_blobs=view_blobs))
+            continue
         seen = {id(o[0]) for o in pose.observations}
         extra = []
         design = marker_set.by_id(pose.marker_id).bb_centers_mm

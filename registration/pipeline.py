@@ -237,10 +237,14 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
     registration raises.
     """
+    every = poses
+    # A loose hypothesis (a ring matched against one marker alone) names no marker until the camera bears it out: it
+    # predicts no tag and starts no search.
+    poses = tuple(p for p in poses if not p.loose)
     searched = search and not _shares_a_marker(video, poses)
     if searched:
         video = search_missing_tags(image, video, locator=locator, poses=poses)
-    reg = register_video_to_fluoro(video, poses, marker_set, camera, joint=joint)
+    reg = register_video_to_fluoro(video, every, marker_set, camera, joint=joint)
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
     if reg.mirror_carm_from_drill is not None:
@@ -274,7 +278,7 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         more = locator.search(image, more, left)
     if more is video:
         return video, reg
-    return more, register_video_to_fluoro(more, poses, marker_set, camera, joint=joint)
+    return more, register_video_to_fluoro(more, every, marker_set, camera, joint=joint)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -322,6 +326,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     video = calibration.locator.locate(image)
     recover = dict(locator=calibration.locator, camera=calibration.camera)
     in_use = refinement.poses if refinement_fits(refinement, poses=poses, calibration=calibration) else poses
+    in_use = tuple(p for p in in_use if not p.loose)  # hypotheses, not poses (see register_with_recovery)
     posed = {p.marker_id for p in in_use if p.converged}
     if previous_carm_from_drill is not None and not posed & {m.marker_id for m in video.markers}:
         video = recover_missing_tags(image, video, poses=in_use, marker_set=marker_set, carm_from_drill=previous_carm_from_drill, **recover)

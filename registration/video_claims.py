@@ -27,7 +27,7 @@ from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
 
-__all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video"]
+__all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video", "corroborate_loose", "LOOSE_MIN_CLAIMED_BBS"]
 
 # After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
 # the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
@@ -153,6 +153,42 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
                               n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,
                               observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs))
     return tuple(out)
+
+
+# A loose hypothesis (a ring that identified no marker, matched against one marker alone) stands when the camera's
+# constellation, fitted to it, has other markers (or the same marker in another view) claim at least this many BBs
+# at their predicted places, more than any rival hypothesis does.
+LOOSE_MIN_CLAIMED_BBS = 4
+
+
+def corroborate_loose(video: VideoDetections, marker_poses: tuple[MarkerPose, ...], loose: tuple[MarkerPose, ...],
+                      marker_set: MarkerSet) -> tuple[MarkerPose, ...]:
+    """``marker_poses`` with the loose hypothesis the camera's constellation bears out, and the BBs it then claims.
+
+    For use when no marker the camera sees was posed in fluoroscopy otherwise: each hypothesis in ``loose``
+    (:attr:`.marker_pose.MarkerPose.loose`) whose tag the camera sees anchors the constellation on its own
+    (:func:`claim_from_video`); it counts the BBs the other markers, and its own marker in the other views,
+    then claim. The hypothesis that claims most, at least LOOSE_MIN_CLAIMED_BBS and strictly more than any other
+    id's, joins ``marker_poses`` (still ``needs_camera``, no longer loose) with those claims; none: ``marker_poses``
+    as they are. A wrong identity puts the constellation where the other markers' BBs are not.
+    """
+    vids = video.by_id()
+    scored = []
+    before = sum(len(o[1]) for p in marker_poses for o in p.observations)
+    for hyp in loose:
+        if hyp.marker_id not in vids:
+            continue
+        anchor = replace(hyp, loose=False)
+        got = claim_from_video(video, tuple(marker_poses) + (anchor,), marker_set)
+        own = sum(len(o[1]) for o in anchor.observations)
+        scored.append((sum(len(o[1]) for p in got for o in p.observations) - before - own, hyp.marker_id, got))
+    if not scored:
+        return tuple(marker_poses)
+    scored.sort(key=lambda s: -s[0])
+    best = scored[0]
+    if best[0] < LOOSE_MIN_CLAIMED_BBS or (len(scored) > 1 and scored[1][0] >= best[0]):
+        return tuple(marker_poses)
+    return best[2]
 
 
 def _count(claims: dict[int, list]) -> int:

@@ -37,7 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
-from .video_claims import claim_from_video, drill_from_marker, fit_constellation
+from .video_claims import claim_from_video, corroborate_loose, drill_from_marker, fit_constellation
 from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -126,8 +126,13 @@ def register_video_to_fluoro(
     camera sees its tag; otherwise it is left out here.
     """
     seen = {m.marker_id for m in video.markers}
-    marker_poses = tuple(p for p in marker_poses if not p.needs_camera or p.marker_id in seen)
+    loose = tuple(p for p in marker_poses if p.loose and p.marker_id in seen)
+    marker_poses = tuple(p for p in marker_poses if not p.loose and (not p.needs_camera or p.marker_id in seen))
     if joint:
+        # With no marker the camera sees posed in fluoroscopy, a ring's loose match to one of them may anchor the
+        # constellation, when the other markers' BBs are where it then predicts them.
+        if loose and not any(p.observations and p.marker_id in seen for p in marker_poses):
+            marker_poses = corroborate_loose(video, marker_poses, loose, marker_set)
         marker_poses = claim_from_video(video, tuple(marker_poses), marker_set)
     every = {p.marker_id: p for p in marker_poses}
     poses = {i: p for i, p in every.items() if p.converged}

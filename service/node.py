@@ -368,7 +368,10 @@ class RegistrationNode:
             raise DrillnavError("no fluoroscopy shot held yet")
         poses = register_markers([self.shots[n].detections for n in names], [self.shots[n].view for n in names], self.marker_set)
         good = [p for p in poses if p.converged and not p.needs_camera]
-        if not good:  # one is enough: the camera's markers claim the others' BBs when each frame is registered (video_claims)
+        waiting = [p for p in poses if p.converged and p.needs_camera]
+        # One is enough: the camera's markers claim the others' BBs when each frame is registered (video_claims). With
+        # none, rings matched only loosely (needs_camera, loose) still let a frame whose camera bears one out register.
+        if not good and not waiting:
             raise DrillnavError(f"no marker pose converged in views {names}; at least 1 is needed")
         self.poses = tuple(poses)
         self.registered_views = tuple(names)
@@ -379,9 +382,11 @@ class RegistrationNode:
         self._pub_markers.put(msg.FluoroMarkers(
             stamp_ns=time.time_ns(), registration_id=self.registration_id, views=tuple(names),
             markers=tuple(msg.MarkerPoseMsg(id=int(p.marker_id), position_carm_mm=tuple(float(v) for v in p.position_carm_mm), residual_px=float(p.residual_px),
-                                            views=int(p.n_views), converged=bool(p.converged), needs_camera=bool(p.needs_camera)) for p in poses),
+                                            views=int(p.n_views), converged=bool(p.converged), needs_camera=bool(p.needs_camera))
+                         for p in poses if not p.loose),  # a loose match is a hypothesis about a ring, not a marker's pose
         ).to_bytes())
-        self._event("info", f"registration {self.registration_id} from views {names}: {len(good)} markers")
+        self._event("info", f"registration {self.registration_id} from views {names}: {len(good)} markers"
+                    + (f", {len(waiting)} more waiting on the camera" if waiting else ""))
         if self.ct_tracker is not None:
             self.ct_tracker.submit([(self.shots[n].view, self.shots[n].image, self.shots[n].detections) for n in names], self.registration_id)
 

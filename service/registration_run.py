@@ -50,10 +50,14 @@ def run_registration(args: argparse.Namespace) -> dict:
     detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1], magnification_range=magnification_range(img.view))
                   for img in images]
     timings["fluoro_features_s"] = time.perf_counter() - t
-    for img, det in zip(images, detections):
-        if not det.markers and len(images) == 1:  # one is enough: the camera's markers claim the others' BBs (video_claims)
+    # One is enough: the camera's markers claim the others' BBs (video_claims); a ring matched only loosely (a candidate,
+    # or a loose match to one marker alone) may still be borne out by the camera's constellation, so it counts here too.
+    named = [{m.marker_id for m in det.markers} | {m.marker_id for r in det.rejected for m in ((r.candidate,) if r.candidate else ()) + r.loose}
+             for det in detections]
+    for img, det, ids in zip(images, detections, named):
+        if not ids and len(images) == 1:
             raise MarkersNotFound(f"{Path(img.source_file).name}: no marker identified in the single view; at least 1 is needed" + "".join(f"; {r.reason}" for r in det.rejected))
-    seen = {m.marker_id for d in detections for m in d.markers}
+    seen = set().union(*named)
     if not seen & set(marker_set.ids):
         raise MarkersNotFound(f"none of the marker set's ids {sorted(marker_set.ids)} is identified in the fluoroscopy views")
 
@@ -86,7 +90,7 @@ def run_registration(args: argparse.Namespace) -> dict:
                   for img, det in zip(images, detections)],
         "markers": [{"id": p.marker_id, "position_carm_mm": [float(v) for v in p.position_carm_mm], "fre_mm": reg.fre_mm.get(p.marker_id),
                      "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged, "needs_camera": p.needs_camera,
-                     "rejected": p.marker_id in reg.rejected_ids} for p in poses],
+                     "rejected": p.marker_id in reg.rejected_ids} for p in poses if not p.loose],
         "predicted_error": {"position_mm": pe.position_mm, "angle_deg": pe.angle_deg, "cone_half_angle_deg": pe.cone_half_angle_deg, "at": "axis point nearest the markers' centroid"},
         "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "corner_rms_px": reg.corner_rms_px},
         "timings_s": timings,
