@@ -90,7 +90,9 @@ def run_registration(args: argparse.Namespace) -> dict:
                   for img, det in zip(images, detections)],
         "markers": [{"id": p.marker_id, "position_carm_mm": [float(v) for v in p.position_carm_mm], "fre_mm": reg.fre_mm.get(p.marker_id),
                      "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged, "needs_camera": p.needs_camera,
-                     "rejected": p.marker_id in reg.rejected_ids} for p in poses if not p.loose],
+                     "loose": p.loose, "rejected": p.marker_id in reg.rejected_ids}
+                    # a loose match (one marker alone, RejectedRing.loose) is listed only where the camera bore it out
+                    for p in poses if not p.loose or p.marker_id in reg.used_ids],
         "predicted_error": {"position_mm": pe.position_mm, "angle_deg": pe.angle_deg, "cone_half_angle_deg": pe.cone_half_angle_deg, "at": "axis point nearest the markers' centroid"},
         "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "corner_rms_px": reg.corner_rms_px},
         "timings_s": timings,

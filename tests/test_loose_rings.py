@@ -1,9 +1,5 @@
-"""A ring that identifies no marker, matched against each marker alone: a hypothesis the camera's constellation settles.
-
-On the twin's rendered inlet view (seed 42, three markers, all identified by the detector) the detections are
-taken back to what a low-dose view behind dense bone leaves: no marker identified, one ring whose BBs matched
-its own marker only loosely (and another marker, wrongly), the other markers' BBs among the view's blobs.
-"""
+"""A ring that identifies no marker, matched against each marker alone: a hypothesis the camera's constellation settles
+(the view: tests/loose_scene.py)."""
 
 from dataclasses import replace
 
@@ -12,33 +8,22 @@ import pytest
 
 from drillnav.drivers.sim.scene import make_scene, render_fluoro
 from drillnav.registration.errors import MarkersNotFound
-from drillnav.registration.fluoro_markers import LOOSE_MAX_COST_MM, FluoroDetections, RejectedRing, detect_markers
+from drillnav.registration.fluoro_markers import LOOSE_MAX_COST_MM, detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.video_claims import LOOSE_MIN_CLAIMED_BBS, corroborate_loose
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoMarkerLocator
 
 from axis_errors import axis_error
-
-SEED, VIEW = 42, "inlet"
+from loose_scene import VIEW, loose_shot
 
 
 @pytest.fixture(scope="module")
 def shot():
-    scene = make_scene(seed=SEED, n_markers=3, views=VIEW)
-    det = detect_markers(scene.fluoro_log[VIEW], scene.marker_set)
-    assert sorted(m.marker_id for m in det.markers) == sorted(scene.carm_from_marker), "the scene must show its three markers"
-    rng = np.random.default_rng(SEED)
-    carm_from_drill = scene.drill_pose_towards(rng, offset_mm=5.0, tilt_deg=5.0)
-    video = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids).locate(scene.render_camera(rng, carm_from_drill=carm_from_drill))
+    scene, bare, ring_id, others, image, carm_from_drill = loose_shot()
+    video = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids).locate(image)
     assert len(video.markers) == 3
-    ring_id, *others = sorted(scene.carm_from_marker)
-    found = det.by_id()[ring_id]
-    # The ring's BBs matched to its own marker at a loose cost, and to another marker (the same BBs, a wrong design).
-    loose = (replace(found, identification_cost_mm=1.6), replace(found, marker_id=others[0], identification_cost_mm=1.7))
-    ring = RejectedRing(reason=f"no marker matches the observed {len(found.bbs)} BBs", center_px=np.asarray(found.ring_ellipse[0]), loose=loose)
-    bare = FluoroDetections(markers=(), rejected=(ring,), blobs=det.blobs)
-    return scene, bare, ring_id, others, video, carm_from_drill
+    return scene, bare, ring_id, list(others), video, carm_from_drill
 
 
 def test_a_loose_match_is_posed_as_a_hypothesis_that_counts_for_nothing_alone(shot):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drillnav.drivers.sim.scene import make_scene
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
 from drillnav.registration.line import Line3D
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
@@ -171,3 +171,39 @@ def test_an_intensifier_views_distortion_rides_on_every_axis():
     # The estimate is the intensifier's: the twin's pincushion at the field's corner (8 px; seeded: 8.1 and 8.4 px).
     pincushion = np.array([k[0] for k in first["detector_distortion_px"].values()])
     assert np.all(np.abs(pincushion - scene.degradations.ii_pincushion_px) < 3.0), first["detector_distortion_px"]
+
+
+def test_a_view_whose_markers_all_wait_on_the_camera_registers_and_its_frames_give_axes(monkeypatch):
+    """A view the detector leaves with no marker identified, one ring matched only loosely (tests/loose_scene.py; the
+    node's detector is handed those detections): the node registers the view, its poses waiting on the camera,
+    publishes no loose match as a marker, and a frame whose camera sees the three tags gets its axis, the camera's
+    constellation bearing the loose match out."""
+    import drillnav.service.node as node_module
+
+    from loose_scene import VIEW, loose_shot
+
+    scene, bare, ring_id, others, image, carm_from_drill = loose_shot()
+    monkeypatch.setattr(node_module, "detect_markers", lambda *args, **kwargs: bare)
+    shot = msg.FluoroShot.build(scene.fluoro_log[VIEW], scene.views[VIEW], stamp_ns=time.time_ns(), view_name=VIEW)
+    published: list[dict] = []
+    with node_and_axes(scene) as (pub, node, axes):
+        sub = pub.declare_subscriber(key("drillnav", "fluoro_markers"), lambda s: published.append(json.loads(s.payload.to_bytes())))
+        try:
+            for _ in range(10):  # a shot put before the node's subscription reached the publisher is lost: put again
+                pub.put(key("drillnav", "fluoro_shot"), shot.to_bytes())
+                if wait_for(lambda: node.status().views == (VIEW,), 3):
+                    break
+            assert node.status().views == (VIEW,), _why(node)
+            assert wait_for(lambda: bool(published), 5), _why(node)
+            assert published[-1]["markers"] == [], published[-1]  # the loose match is a hypothesis, not a marker's pose
+            stamp = time.time_ns()
+            node.take_frame(image, stamp)
+            assert wait_for(lambda: any(a["source_frame_stamp_ns"] == stamp for a in list(axes)), 20), _why(node)
+        finally:
+            sub.undeclare()
+    axis = next(a for a in axes if a["source_frame_stamp_ns"] == stamp)
+    assert sorted(axis["markers_used"]) == sorted(scene.carm_from_marker), axis["markers_used"]
+    drawn = Line3D(point_mm=np.array(axis["point_mm"]), direction=np.array(axis["direction"]))
+    truth = TRUE_DRILL_AXIS_CAMERA.transformed(carm_from_drill)
+    entry = scene.corridor_entry_carm_mm
+    assert np.linalg.norm(drawn.closest_point(entry) - truth.closest_point(entry)) < 2.0 and drawn.angle_deg(truth) < 1.0
