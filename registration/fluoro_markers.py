@@ -310,8 +310,8 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
 IDENTIFY_MAX_COST_MM = 0.9
 CORROBORATED_MAX_COST_MM = 1.2
 # A ring that identifies no marker is matched against each marker of the set alone, up to this cost: in low dose and
-# behind dense bone the true marker's pattern costs 1.0-2.0 mm, often with no margin over the others (seeds 6200-6201,
-# measured). Such a match names nothing by itself; the camera's constellation settles it (video_claims).
+# behind dense bone the true marker's pattern costs 0.7-2.2 mm, often with no margin over the others (seeds 6200-6201,
+# every view, measured). Such a match names nothing by itself; the camera's constellation settles it (video_claims).
 LOOSE_MAX_COST_MM = 2.0
 
 

@@ -71,6 +71,9 @@ def run_registration(args: argparse.Namespace) -> dict:
         refined = []
         for p in poses:
             seen = [(img.view, img.pixels_log) for img, det in zip(images, detections) if p.marker_id in det.by_id()]
+            if not seen:  # posed from a ring no view identified it by (a candidate, a loose match): nothing to refine on
+                refined.append(p)
+                continue
             r = refine_marker_pose(marker_set.by_id(p.marker_id), p.carm_from_marker, [v for v, _ in seen], [i for _, i in seen])
             refined.append(replace(p, carm_from_marker=r.carm_from_marker, converged=p.converged and r.converged))
         poses = tuple(refined)
