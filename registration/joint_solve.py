@@ -189,6 +189,7 @@ def joint_solve(
     crowded_bbs: bool = True,
     corner_extra_px: dict[int, float] | None = None,
     fluoro_only: dict[int, tuple[tuple, NDArray[np.float64]]] | None = None,
+    give_up_above_chi2: float | None = None,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
 
@@ -219,6 +220,9 @@ def joint_solve(
     fluoroscopy that the camera does not see. Where a view's intensifier distortion is estimated, their BBs join
     the solve with poses of their own (in no tag corner, no vote, not in ``used_ids``): more of the field shows
     the distortion. Elsewhere they add nothing and are left out.
+    ``give_up_above_chi2``: when the first plain fit is not clean and its chi-square exceeds this, that fit is
+    returned as it is, with no robust rounds, rejection or vote (a caller that only wants a solution fitting about as
+    well as one it has: the mirror start of a single view, :func:`.video_fluoro._settle_constellation_mirror`).
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -253,7 +257,7 @@ def joint_solve(
     clean = max(sol.marker_chi.values()) <= outlier_chi and not _corner_suspects(sol, corners_px, ids, corner_min_px) and all(
         len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px)[k][1]) == len(o[1])
         for i in ids for k, o in enumerate(observations[i]))
-    if clean:
+    if clean or (give_up_above_chi2 is not None and sol.chi2 > give_up_above_chi2):
         return sol
     trimmed = consensus_tried = False
     dropped: dict[int, tuple[int, ...]] = {}

@@ -245,6 +245,8 @@ def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.flo
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
 # chi-square) is not ruled out by the data: about a 4-sigma difference in one direction.
 MIRROR_DELTA_CHI2 = 16.0
+# The mirror start's first plain fit, beyond the best by this many times that margin, ends its solve there.
+MIRROR_GIVE_UP = 100.0
 
 
 def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None]:
@@ -263,8 +265,13 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     beam /= np.linalg.norm(beam)
     rot = (np.eye(3) - 2.0 * np.outer(beam, beam)) @ (np.eye(3) - 2.0 * np.outer(normal, normal))
     flip = make_transform(rot, centroid - rot @ centroid)
+    # A mirror whose first plain fit is far beyond the best (MIRROR_GIVE_UP times the margin that keeps it open) is not
+    # worth the robust rounds, rejection and vote: on the twin they took 0.6-2 s of a single view's registration, and
+    # only dropped BBs or markers from a fit already ruled out.
+    give_up = sol.chi2 + MIRROR_GIVE_UP * MIRROR_DELTA_CHI2 * max(sol.reduced_chi2, 1.0)
     try:
-        alt = joint_solve(carm_from_drill0=flip @ sol.carm_from_drill, carm_from_marker0={i: flip @ t for i, t in sol.carm_from_marker.items()}, **solve)
+        alt = joint_solve(carm_from_drill0=flip @ sol.carm_from_drill, carm_from_marker0={i: flip @ t for i, t in sol.carm_from_marker.items()},
+                          give_up_above_chi2=give_up, **solve)
     except DrillnavError:
         return sol, None
     if set(alt.used_ids) != set(sol.used_ids):

@@ -251,6 +251,11 @@ def test_a_marker_whose_bbs_disagree_with_its_tag_is_voted_out_and_a_misfit_wide
     assert one_bad.rejected_ids == (ids[0],) and one_bad.used_ids == tuple(ids[1:]), (one_bad.rejected_ids, one_bad.marker_chi)
     (p0, a0), (p1, a1) = _drill_error(clean, scene), _drill_error(one_bad, scene)
     assert p1 < p0 + 1.0 and a1 < a0 + 0.5, (p0, p1, a0, a1)
+    # A caller that wants only a fit about as good as one it has (a single view's mirror start) gives up past a
+    # chi-square: the first plain fit comes back as it is, nothing trimmed, rejected or voted.
+    plain = joint_solve(observations={**observations, ids[0]: wrong[ids[0]]}, give_up_above_chi2=clean.chi2, **common)
+    assert plain.rejected_ids == () and plain.used_ids == tuple(ids) and max(plain.marker_chi.values()) > 4.0
+    assert plain.chi2 > clean.chi2
     two_bad = joint_solve(observations={**observations, ids[0]: wrong[ids[0]], ids[1]: wrong[ids[1]]}, **common)
     assert two_bad.rejected_ids == () and max(two_bad.marker_chi.values()) > 4.0
     assert two_bad.reduced_chi2 > 10.0
