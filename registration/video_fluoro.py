@@ -266,7 +266,7 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     rot = (np.eye(3) - 2.0 * np.outer(beam, beam)) @ (np.eye(3) - 2.0 * np.outer(normal, normal))
     flip = make_transform(rot, centroid - rot @ centroid)
     # A mirror whose first plain fit is far beyond the best (MIRROR_GIVE_UP times the margin that keeps it open) is not
-    # worth the robust rounds, rejection and vote: on the twin they took 0.6-2 s of a single view's registration, and
+    # worth the robust rounds, rejection and vote: on the twin they took 0.6-1.4 s of a single view's registration, and
     # only dropped BBs or markers from a fit already ruled out.
     give_up = sol.chi2 + MIRROR_GIVE_UP * MIRROR_DELTA_CHI2 * max(sol.reduced_chi2, 1.0)
     try:
