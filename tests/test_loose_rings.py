@@ -33,8 +33,8 @@ def test_a_loose_match_is_posed_as_a_hypothesis_that_counts_for_nothing_alone(sh
     hyp = by_id[ring_id]
     assert hyp.loose and hyp.needs_camera and hyp.converged
     assert np.linalg.norm(hyp.position_carm_mm - scene.carm_from_marker[ring_id][:3, 3]) < 3.0
-    # The wrong design does not fit the ring's BBs as one plane: no pose, no hypothesis.
-    assert others[0] not in by_id or by_id[others[0]].loose
+    # The wrong design does not fit the ring's BBs as one plane (seeded: 30.8 px RMS): no pose, no hypothesis.
+    assert others[0] not in by_id
     # The camera sees only the ring's own marker: nothing bears the hypothesis out, and nothing registers.
     alone = replace(video, markers=tuple(m for m in video.markers if m.marker_id == ring_id))
     with pytest.raises(MarkersNotFound, match="only 0 marker"):
@@ -78,5 +78,5 @@ def test_the_detector_matches_a_rejected_ring_against_each_marker_alone():
     match = {m.marker_id: m for m in ring.loose}[12]
     assert abs(match.identification_cost_mm - ring.candidate.identification_cost_mm) < 1e-9
     assert all(m.identification_cost_mm <= LOOSE_MAX_COST_MM and (m.bb_index >= 0).sum() >= 4 for m in ring.loose)
-    # Rings the detector identified carry none.
+    # Rings rejected for another reason (edge-on, too few BBs, overlapping) carry none.
     assert all(not r.loose for r in det.rejected if not r.reason.startswith(("no marker matches", "ambiguous")))
