@@ -33,6 +33,10 @@ with a part hidden, of which ArUco made no candidate), about 50 ms on a 1280x720
 would otherwise be refused. So is a tag that the registration puts in the frame but that the recovery did not find
 where predicted (a registration on one or two markers can be off by more than the recovery's reach); that search is
 made by the joint solve's frames only, never on the tracking path.
+
+A frame still refused for want of a shared marker, or registered on one marker, then tries the tags whose code
+reads only in part (blur, a highlight), named among the posed markers it misses (:mod:`.tag_hypotheses`): the joint
+solve must keep a named tag beside another marker for the name to stand (:func:`register_with_recovery`).
 """
 
 from __future__ import annotations
@@ -54,9 +58,13 @@ from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_fram
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
+# A joint registration on fewer markers than this (or none) tries the tags named among the posed markers
+# (:mod:`.tag_hypotheses`). Not two: on twin seeds 6600-6605 and 6900-6905 (M = 5) a named tag's few-pixel corners
+# made 13 of 25 registrations on two markers worse (2.00 -> 3.86 mm at worst), where they made 19 of 21 on one better.
+NAMED_BELOW_MARKERS = 2
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
 # markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
 # benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
@@ -225,7 +233,7 @@ def _merged(a: dict[int, NDArray[np.float64]], b: dict[int, NDArray[np.float64]]
 
 def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
                            poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True,
-                           search: bool = True) -> tuple[VideoDetections, DrillRegistration]:
+                           search: bool = True, name_outlines: bool = True) -> tuple[VideoDetections, DrillRegistration]:
     """Register ``video`` (:func:`.register_video_to_fluoro`), recover the missing tags where that registration predicts
     them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration).
 
@@ -233,6 +241,10 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     (:func:`search_missing_tags`); a tag that the registration puts in the frame but that the recovery did not find
     where predicted is searched for the same way afterwards. ``search`` False skips both (a caller that searched
     already, or the tracking path, which cannot spend ~50 ms a frame).
+
+    A joint registration that is refused for want of a shared marker, or that rests on one marker
+    (``NAMED_BELOW_MARKERS``), then tries the tags whose code reads only in part, named among the posed markers
+    the frame misses (:func:`_registration_with_named_tags`); ``name_outlines`` False skips that.
 
     The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
     registration raises.
@@ -244,7 +256,15 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
     searched = search and not _shares_a_marker(video, poses)
     if searched:
         video = search_missing_tags(image, video, locator=locator, poses=poses)
-    reg = register_video_to_fluoro(video, every, marker_set, camera, joint=joint)
+    named = joint and name_outlines
+    try:
+        reg = register_video_to_fluoro(video, every, marker_set, camera, joint=joint)
+    except MarkersNotFound:
+        got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
+                                            used_before=0) if named else None
+        if got is None:
+            raise
+        return got
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
     if reg.mirror_carm_from_drill is not None:
@@ -276,9 +296,42 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # off by more than the recovery's tolerance), or put out of it by a weak one: searched for with no
         # prediction, in the whole frame.
         more = locator.search(image, more, left)
-    if more is video:
-        return video, reg
-    return more, register_video_to_fluoro(more, every, marker_set, camera, joint=joint)
+    if more is not video:
+        video, reg = more, register_video_to_fluoro(more, every, marker_set, camera, joint=joint)
+    if named and len(reg.used_ids) < NAMED_BELOW_MARKERS:
+        got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
+                                            used_before=len(reg.used_ids))
+        if got is not None:
+            return got
+    return video, reg
+
+
+def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
+                                  poses: tuple[MarkerPose, ...], every: tuple[MarkerPose, ...], marker_set: MarkerSet,
+                                  used_before: int) -> tuple[VideoDetections, DrillRegistration] | None:
+    """The joint registration of ``video`` with the tags whose code reads only in part, named among the markers posed
+    in fluoroscopy (``poses``, loose hypotheses left out) that it misses (:meth:`.VideoMarkerLocator.name_among_posed`),
+    when it bears them out: (detections with the named tags it used, registration), or None.
+
+    Borne out: the registration uses at least two markers, more than ``used_before`` (the markers the frame's
+    registration used without them; 0 when it was refused), one of them named. A named tag whose marker misfits
+    the others is rejected by the joint solve like any marker, and dropped; two markers both kept agree on their
+    places in the camera and in fluoroscopy, which a wrong name, tens of millimetres off, does not.
+    ``every``: the poses the registration is given (loose hypotheses included, as for the frame's own).
+    """
+    wanted = {p.marker_id for p in _missing(video, poses, locator)}
+    named = locator.name_among_posed(image, video, wanted)
+    if not named:
+        return None
+    trial = replace(video, markers=tuple(sorted(video.markers + named, key=lambda m: m.marker_id)))
+    try:
+        reg = register_video_to_fluoro(trial, every, marker_set, camera, joint=True)
+    except MarkersNotFound:
+        return None
+    used = set(reg.used_ids)
+    if len(used) < max(2, used_before + 1) or not used & {m.marker_id for m in named}:
+        return None
+    return replace(trial, markers=tuple(m for m in trial.markers if not m.named_among_posed or m.marker_id in used)), reg
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -333,12 +386,17 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     searched = not _shares_a_marker(video, in_use)
     if searched:  # nothing to register from, nor to predict the missing tags: search for them
         video = search_missing_tags(image, video, locator=calibration.locator, poses=in_use)
-    if not video.markers:
-        raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
-    fresh = (not refinement_fits(refinement, poses=poses, calibration=calibration)
+    # A frame that found no tag is registered afresh: tags whose code reads only in part may still be named among the
+    # posed markers (register_with_recovery), or it is refused for what it is.
+    fresh = (not video.markers or not refinement_fits(refinement, poses=poses, calibration=calibration)
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
-        video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=not searched, **recover)
+        try:
+            video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=not searched, **recover)
+        except MarkersNotFound:
+            if not video.markers:
+                raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame") from None
+            raise
         refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
         video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, search=False, **recover)

@@ -21,6 +21,7 @@ from .markers import MarkerSet
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
 from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
+from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, outline_hypotheses
 from .tag_search import search_tags
 from .transforms import make_transform
 
@@ -52,6 +53,8 @@ class VideoMarker:
         verified by the code cells that could be read (:mod:`.tag_recovery`).
     corner_sigma_px : the corner noise (1 sigma, px) ``covariance_mm2`` was computed with: larger for a recovered
         tag (up to one corner is the crossing of two partly hidden edges).
+    named_among_posed : its code read only in part, it was named among the markers posed in fluoroscopy that the
+        frame had not found (:mod:`.tag_hypotheses`), and a registration bore the name out; also ``recovered``.
     """
 
     marker_id: int
@@ -62,6 +65,7 @@ class VideoMarker:
     reprojection_error_px: float
     recovered: bool = False
     corner_sigma_px: float = 0.1
+    named_among_posed: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -404,6 +408,30 @@ class VideoMarkerLocator:
         if not found:
             return video
         return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+
+    def name_among_posed(self, image: NDArray[np.uint8], video: VideoDetections, marker_ids: Iterable[int]) -> tuple[VideoMarker, ...]:
+        """Hypotheses for the tags of ``marker_ids`` (markers posed in fluoroscopy) that ``video`` misses: outlines whose
+        code, read only in part, names one of them (:func:`.tag_hypotheses.outline_hypotheses`).
+
+        Each is returned as a marker flagged ``recovered`` and ``named_among_posed``, its covariance computed with
+        ``OUTLINE_CORNER_SIGMA_PX`` (``RECOVERED_CORNER_SIGMA_PX`` where its edges were fitted). They are not added to
+        ``video``: a caller adds them only where a registration bears them out.
+        """
+        have = {m.marker_id for m in video.markers}
+        todo = {int(i) for i in marker_ids} - have
+        if not todo:
+            return ()
+        gray = _gray(image)
+        named: list[VideoMarker] = []
+        for name, per in self._specs.items():
+            wanted = [a for a, spec in per.items() if spec.marker_id in todo]
+            if not wanted:
+                continue
+            for hyp in outline_hypotheses(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers],
+                                          half_above_px=self.detect_below_px):
+                sigma = RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX
+                named.append(replace(self._pose(per[hyp.aruco_id], hyp.corners_px, corner_sigma_px=sigma), named_among_posed=True))
+        return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
         k, dist = self.camera.camera_matrix, self.camera.distortion

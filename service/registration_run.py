@@ -40,10 +40,10 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["read_s"] = time.perf_counter() - t
 
     calibration = LiveCalibration.build(camera=camera, axis_drill=axis_drill, marker_set=marker_set, axis_uncertainty=read_drill_uncertainty(args.drill))
-    # The frame is tracked below by the node's own pipeline; looking for markers first gives the clear error before the fluoroscopy work.
+    # The frame is tracked below by the node's own pipeline. A frame in which ArUco finds no tag is not refused here: a
+    # tag whose code reads only in part may still be named among the markers fluoroscopy poses (tag_hypotheses).
     t = time.perf_counter()
-    if not calibration.locator.locate(frame).markers:
-        raise MarkersNotFound(f"{args.video}: no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame")
+    tags_found = bool(calibration.locator.locate(frame).markers)
     timings["video_markers_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -80,7 +80,12 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["marker_registration_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    fa = track_frame(frame, calibration=calibration, poses=poses, marker_set=marker_set)  # the node's pipeline, one home
+    try:
+        fa = track_frame(frame, calibration=calibration, poses=poses, marker_set=marker_set)  # the node's pipeline, one home
+    except MarkersNotFound as exc:
+        if tags_found:
+            raise
+        raise MarkersNotFound(f"{args.video}: {exc}") from None
     timings["video_to_fluoro_s"] = time.perf_counter() - t
     video, reg, pe, axis_c, axis_out = fa.video, fa.registration, fa.predicted_error, fa.axis_full_carm, fa.axis_carm
 

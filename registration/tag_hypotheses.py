@@ -1,0 +1,109 @@
+"""Tags whose code reads only in part, named among the markers fluoroscopy posed and the camera has not found.
+
+A tag blurred by the drill's motion, washed by a highlight on its gloss, or specked with blood still thresholds to
+a dark four-sided outline (:func:`.tag_search.tag_candidates`), but its code reads in a handful of cells and its
+edges show no clean border step: neither the dictionary-wide identity rule of :mod:`.tag_search` nor the edge fit
+of :mod:`.tag_recovery` accepts it, and a frame whose every posed marker's tag is like that is refused (on the
+operating-room twin, most refusals of a frame whose tags are in view). A registration on one marker, whose
+neighbours' tags are like that, cannot predict them well enough to recover them, and rests on that one marker.
+
+Here each outline's code is read at its four rotations (on the edges' fitted corners where
+:func:`.tag_recovery.fit_tag_edges` fits them, on the outline's otherwise) and judged only among ``wanted``: the
+ArUco ids of the markers fluoroscopy posed that the frame has not found. An outline is named when at least
+``MIN_CELLS`` cells are read, at least ``MIN_AGREEMENT`` of them agree with one wanted id (at its best rotation),
+and every other wanted id agrees with at least ``MIN_MARGIN_CELLS`` fewer. One outline per id, the one with the
+most cells agreeing.
+
+A name so given is a hypothesis, not an identity: a handful of cells can agree with a wanted id by chance. The
+caller lets a hypothesis into a registration only where the registration bears it out
+(:func:`.pipeline.register_with_recovery`: the joint solve keeps it beside another marker it fits, the two
+markers' places agreeing in the camera and in fluoroscopy). Its corners are as good as the outline, a few pixels
+(:data:`OUTLINE_CORNER_SIGMA_PX`): the joint solve weighs them so.
+
+Pure math: numpy and OpenCV's image functions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .tag_recovery import dictionary_codes, fit_tag_edges, read_code
+from .tag_search import tag_candidates
+
+__all__ = ["TagHypothesis", "outline_hypotheses", "OUTLINE_CORNER_SIGMA_PX", "MIN_CELLS", "MIN_AGREEMENT", "MIN_MARGIN_CELLS"]
+
+# The corner noise (1 sigma, px) of a tag placed by its outline alone. On the operating-room twin (twin seeds
+# 6104-7004, tags of refused frames and of frames registered on one marker, 150 px across) the outlines named this
+# way lay 2.5-6 px from the true corners at their worst corner for most, 10-17 px for a fifth (a bite taken by a
+# highlight): see docs/identity_and_error.md, "Tags named among the posed markers".
+OUTLINE_CORNER_SIGMA_PX = 3.0
+MIN_CELLS = 6             # code cells read, at least
+MIN_AGREEMENT = 0.9       # of them agreeing with the named id
+MIN_MARGIN_CELLS = 2      # over every other wanted id
+
+
+@dataclass(frozen=True, kw_only=True)
+class TagHypothesis:
+    """An outline named among the wanted ids.
+
+    corners_px : (4, 2) its corners, OpenCV order (TL, TR, BR, BL) for the named id's rotation.
+    edges_fitted : the corners are its edges' fitted crossings (:func:`.tag_recovery.fit_tag_edges`), not the outline's.
+    cells_read, cells_agreeing : code cells read, and those agreeing with ``aruco_id``.
+    runner_up_agreeing : the cells agreeing with the best other wanted id (any rotation); -1 when none is wanted.
+    """
+
+    aruco_id: int
+    corners_px: NDArray[np.float64]
+    edges_fitted: bool
+    cells_read: int
+    cells_agreeing: int
+    runner_up_agreeing: int
+
+
+def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[int], exclude_px: Sequence[NDArray[np.float64]] = (),
+                       half_above_px: int = 800, tolerance_px: float = 6.0) -> list[TagHypothesis]:
+    """The outlines of a grayscale frame (H, W) uint8 named among ``wanted`` (ArUco ids of ``dictionary``) by the rule of
+    the module docstring, at most one per id, sorted by id.
+
+    ``exclude_px``: (4, 2) corners of tags already found (their outlines are skipped). ``half_above_px``: see
+    :func:`.tag_search.tag_candidates`. ``tolerance_px``: how far each fitted edge may lie from the outline.
+    """
+    ids = sorted({int(i) for i in wanted})
+    if not ids:
+        return []
+    codes = dictionary_codes(dictionary)
+    if ids[0] < 0 or ids[-1] >= len(codes):
+        raise ValueError(f"wanted ids {ids} are not all ids of {dictionary} (0-{len(codes) - 1})")
+    flat = codes.reshape(len(codes), -1)[ids]                                         # (w, s * s)
+    gray_f = gray.astype(np.float32)
+    best: dict[int, TagHypothesis] = {}
+    for quad in tag_candidates(gray, half_above_px=half_above_px, exclude_px=exclude_px):
+        edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px)
+        corners = edges.corners_px if edges.accepted else quad
+        agree = np.zeros((4, len(ids)), dtype=np.int64)
+        n_read = -1
+        for k in range(4):
+            read = read_code(gray_f, np.roll(corners, -k, axis=0), code_size=codes.shape[1], partial=True)
+            if read.reason:
+                break
+            agree[k] = ((flat == read.bits[None, :]) & read.known[None, :]).sum(axis=1)
+            n_read = int(read.known.sum())
+        else:
+            per_id = agree.max(axis=0)                                                # (w,) each id at its best rotation
+            order = np.argsort(-per_id, kind="stable")
+            top = int(order[0])
+            mine = int(per_id[top])
+            runner_up = int(per_id[order[1]]) if len(ids) > 1 else -1
+            if n_read < MIN_CELLS or mine < MIN_AGREEMENT * n_read or (runner_up >= 0 and mine - runner_up < MIN_MARGIN_CELLS):
+                continue
+            aruco_id = ids[top]
+            if aruco_id in best and best[aruco_id].cells_agreeing >= mine:
+                continue
+            k = int(np.argmax(agree[:, top]))
+            best[aruco_id] = TagHypothesis(aruco_id=aruco_id, corners_px=np.roll(corners, -k, axis=0), edges_fitted=bool(edges.accepted),
+                                           cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up)
+    return [best[i] for i in sorted(best)]
