@@ -58,13 +58,19 @@ from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_fram
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "NAMED_MAX_FRE_MM", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 # A joint registration on fewer markers than this (or none) tries the tags named among the posed markers
 # (:mod:`.tag_hypotheses`). Not two: on twin seeds 6600-6605 and 6900-6905 (M = 5) a named tag's few-pixel corners
 # made 13 of 25 registrations on two markers worse (2.00 -> 3.86 mm at worst), where they made 19 of 21 on one better.
 NAMED_BELOW_MARKERS = 2
+# A registration with named tags stands only when every marker it uses lies within this of where fluoroscopy puts it
+# (``DrillRegistration.fre_mm``). A wrong name puts its marker tens of millimetres off, and with two markers in one
+# view the joint solve can bend both to it: on twin seed 6305 two such registrations had 113 and 2314 mm (188.7 and
+# 1838 mm off at the entry). Against runs without the rule, nothing else moved on seeds 6100-6105, 6300-6305,
+# 6600-6605 and 6900-6905 (M = 5); the right names checked by hand had at most 5.2 mm.
+NAMED_MAX_FRE_MM = 10.0
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
 # markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
 # benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
@@ -314,9 +320,10 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     when it bears them out: (detections with the named tags it used, registration), or None.
 
     Borne out: the registration uses at least two markers, more than ``used_before`` (the markers the frame's
-    registration used without them; 0 when it was refused), one of them named. A named tag whose marker misfits
-    the others is rejected by the joint solve like any marker, and dropped; two markers both kept agree on their
-    places in the camera and in fluoroscopy, which a wrong name, tens of millimetres off, does not.
+    registration used without them; 0 when it was refused), one of them named, and every marker it uses lies within
+    ``NAMED_MAX_FRE_MM`` of where fluoroscopy puts it. A named tag whose marker misfits the others is rejected by the
+    joint solve like any marker, and dropped; markers kept agree on their places in the camera and in fluoroscopy,
+    which a wrong name, tens of millimetres off, does not.
     ``every``: the poses the registration is given (loose hypotheses included, as for the frame's own).
     """
     wanted = {p.marker_id for p in _missing(video, poses, locator)}
@@ -330,6 +337,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
         return None
     used = set(reg.used_ids)
     if len(used) < max(2, used_before + 1) or not used & {m.marker_id for m in named}:
+        return None
+    if any(reg.fre_mm.get(i, np.inf) > NAMED_MAX_FRE_MM for i in used):
         return None
     return replace(trial, markers=tuple(m for m in trial.markers if not m.named_among_posed or m.marker_id in used)), reg
 

@@ -93,7 +93,7 @@ def test_ids_outside_the_dictionary_are_refused():
 NAMED_SEED, NAMED_VIEWS, NAMED_FRAME = 5006, "inlet,outlet", 2
 
 
-def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_within_its_bound():
+def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_and_not_on_wrong_names():
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -148,6 +148,20 @@ def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
     fa = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set)
     assert set(fa.registration.used_ids) == set(reg.used_ids) and all(m.named_among_posed for m in fa.video.markers if m.marker_id in reg.used_ids)
+
+    # Wrong names (the same outlines, their ids turned round) are not borne out: still refused.
+    from dataclasses import replace
+
+    ids = sorted(m.marker_id for m in named)
+    turned = dict(zip(ids, ids[1:] + ids[:1]))
+    right = VideoMarkerLocator.name_among_posed
+    wrong = lambda self, *a: tuple(replace(m, marker_id=turned[m.marker_id]) for m in right(self, *a))  # noqa: E731
+    import pytest as _pytest
+
+    with _pytest.MonkeyPatch.context() as mp:
+        mp.setattr(VideoMarkerLocator, "name_among_posed", wrong)
+        with pytest.raises(MarkersNotFound, match="only 0 marker"):
+            register_with_recovery(image, video, **common)
 
     # Posed markers whose tags are not in the frame name nothing: still refused, with the reason.
     elsewhere = tuple(p for p in poses if p.marker_id not in truth)
