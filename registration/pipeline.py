@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 
 from .axis_uncertainty import AxisUncertainty
 from .camera import PinholeCamera
-from .errors import MarkersNotFound
+from .errors import DrillnavError, MarkersNotFound
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
@@ -333,7 +333,7 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     trial = replace(video, markers=tuple(sorted(video.markers + named, key=lambda m: m.marker_id)))
     try:
         reg = register_video_to_fluoro(trial, every, marker_set, camera, joint=True)
-    except MarkersNotFound:
+    except DrillnavError:  # the names are not borne out (nothing usable, degenerate, not converged): the frame keeps its own result
         return None
     used = set(reg.used_ids)
     if len(used) < max(2, used_before + 1) or not used & {m.marker_id for m in named}:
