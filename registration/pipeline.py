@@ -120,6 +120,20 @@ class JointRefinement:
     # ((view, (2,) pincushion and S shift at the field's corner, px), ...): each image intensifier view's distortion
     # as the solve estimated it; the frames after it draw their axis with it.
     detector_distortion_px: tuple = ()
+    refined_ids: tuple[int, ...] = ()  # the markers the solve used (its poses in ``poses``)
+
+    @property
+    def tracked_poses(self) -> tuple[MarkerPose, ...]:
+        """The markers the frames after the solve are registered on (Horn + corner PnP, no joint solve).
+
+        Those the solve refined, and those fluoroscopy alone poses firmly: in two views or more, with no mirror
+        solution, identified without the camera. A marker posed in one view (its depth along the beam a few
+        millimetres off) or with its mirror still open would pull a frame's axis that way where it has no joint solve to
+        weigh it: a frame that sees no other marker is registered afresh.
+        """
+        refined = set(self.refined_ids)
+        return tuple(p for p in self.poses if p.marker_id in refined or (
+            p.converged and p.n_views >= 2 and p.mirror_carm_from_marker is None and not p.needs_camera and not p.loose))
 
 
 def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tuple[MarkerPose, ...]:
@@ -139,7 +153,7 @@ def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], c
     # reg.marker_poses adds the markers claimed through the video (edge-on in fluoroscopy): the frames after it use them too
     return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg), covariance_drill=reg.covariance_drill,
                            pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns,
-                           detector_distortion_px=reg.detector_distortion_px)
+                           detector_distortion_px=reg.detector_distortion_px, refined_ids=tuple(reg.used_ids))
 
 
 def refinement_fits(refinement: JointRefinement | None, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration) -> bool:
@@ -152,10 +166,15 @@ def refinement_due(refinement: JointRefinement, *, now_ns: int, joint_period_ns:
     return now_ns - refinement.at_ns >= joint_period_ns
 
 
+def _shared_ids(video: VideoDetections, poses: tuple[MarkerPose, ...]) -> set[int]:
+    """The markers the frame found that are posed (or have BBs) in fluoroscopy."""
+    seen = {m.marker_id for m in video.markers}
+    return {p.marker_id for p in poses if p.marker_id in seen and (p.converged or p.observations)}
+
+
 def _shares_a_marker(video: VideoDetections, poses: tuple[MarkerPose, ...]) -> bool:
     """Whether a marker the frame found is posed (or has BBs) in fluoroscopy: without one nothing registers."""
-    seen = {m.marker_id for m in video.markers}
-    return any(p.marker_id in seen and (p.converged or p.observations) for p in poses)
+    return bool(_shared_ids(video, poses))
 
 
 def search_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, poses: tuple[MarkerPose, ...]) -> VideoDetections:
@@ -363,6 +382,12 @@ class FrameAxis:
     def working_point_carm_mm(self) -> NDArray[np.float64]:
         return self.axis_carm.point_mm
 
+    @property
+    def named_ids(self) -> tuple[int, ...]:
+        """The markers the registration used whose tags were named among the posed markers (outline corners)."""
+        used = set(self.registration.used_ids)
+        return tuple(sorted(m.marker_id for m in self.video.markers if m.named_among_posed and m.marker_id in used))
+
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
                 limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
@@ -373,7 +398,8 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     ``refinement``, ``now_ns``: the previous frame's :class:`JointRefinement` and a monotonic time (live callers;
     see the module docstring); without them the frame runs the joint solve. ``joint_period_ns`` None: an old
     refinement is never re-solved here (the caller schedules that; a refinement of another registration or
-    calibration still is).
+    calibration still is). A frame registered afresh on tags named among the posed markers (``FrameAxis.named_ids``)
+    hands on the refinement it was given where that still fits, not one of its own outline corners.
 
     Markers posed in fluoroscopy that the frame misses are recovered where its registration predicts them
     (:func:`recover_missing_tags`) before the registration that gives the axis. ``previous_carm_from_drill``
@@ -397,7 +423,10 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         video = search_missing_tags(image, video, locator=calibration.locator, poses=in_use)
     # A frame that found no tag is registered afresh: tags whose code reads only in part may still be named among the
     # posed markers (register_with_recovery), or it is refused for what it is.
-    fresh = (not video.markers or not refinement_fits(refinement, poses=poses, calibration=calibration)
+    # So is a frame that would be tracked on fewer markers than it sees posed, below two (a marker fluoroscopy poses
+    # weakly is left to the joint solve, not dropped where one marker would remain).
+    fits = refinement_fits(refinement, poses=poses, calibration=calibration)
+    fresh = (not video.markers or not fits or len(_shared_ids(video, refinement.tracked_poses)) < min(2, len(_shared_ids(video, in_use)))
              or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
     if fresh:
         try:
@@ -406,9 +435,13 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
             if not video.markers:
                 raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame") from None
             raise
-        refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
+        # A registration on named tags (outline corners, a few millimetres) gives this frame its axis, but does not
+        # replace a refinement that still fits: the markers it refined are tracked on frames whose tags ArUco reads.
+        named = any(m.named_among_posed for m in video.markers if m.marker_id in reg.used_ids)
+        if not (named and fits):
+            refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
     else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
-        video, reg = register_with_recovery(image, video, poses=refinement.poses, marker_set=marker_set, joint=False, search=False, **recover)
+        video, reg = register_with_recovery(image, video, poses=refinement.tracked_poses, marker_set=marker_set, joint=False, search=False, **recover)
         reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
                       method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
         poses = refinement.poses

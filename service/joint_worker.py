@@ -154,7 +154,8 @@ class JointSolveWorker:
                          now_ns=stamp_ns, joint_period_ns=None, previous_carm_from_drill=previous)
         self.refinement = fa.refinement
         self._last = (stamp_ns, poses, fa.registration.carm_from_drill)
-        if (self._pending is None and fa.refinement is not None and self._pool is not None
+        # A frame registered on named tags (outline corners) is not the periodic solve's frame: the next one may be.
+        if (self._pending is None and fa.refinement is not None and self._pool is not None and not fa.named_ids
                 and refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns)):
             future = self._submit(fa.video, poses, calibration.camera)
             self._pending = _Pending(at_ns=stamp_ns, video=fa.video, poses=poses, calibration=calibration, future=future)

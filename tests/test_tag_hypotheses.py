@@ -114,9 +114,11 @@ def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_
     dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
     poses = register_markers(dets, list(scene.views.values()), scene.marker_set)
     pose_rng, camera_rng = np.random.default_rng([NAMED_SEED, 2, 2]), np.random.default_rng([NAMED_SEED, 2, 3])
+    images = []
     for _ in range(NAMED_FRAME + 1):
         pose = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
         image = scene.render_camera(camera_rng, carm_from_drill=pose)
+        images.append(image)
     locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
     video = locator.locate(image)
     posed = {p.marker_id for p in poses if p.converged}
@@ -147,7 +149,25 @@ def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_
     # The live frame path does the same on the frame it registers afresh.
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
     fa = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set)
-    assert set(fa.registration.used_ids) == set(reg.used_ids) and all(m.named_among_posed for m in fa.video.markers if m.marker_id in reg.used_ids)
+    assert set(fa.registration.used_ids) == set(reg.used_ids) and fa.named_ids == tuple(sorted(reg.used_ids))
+
+    # Live, the first frame (ArUco reads its tags) gives the refinement, and the named frame hands it on: the markers
+    # tracked on the next frames are not refined on outline corners. Nor does the worker take the named frame for its
+    # periodic solve (due here: 10 s after the first frame), where it takes the next frame that reads its tags.
+    first = track_frame(images[0], calibration=calibration, poses=poses, marker_set=scene.marker_set, now_ns=0)
+    assert not first.named_ids and first.registration.method == "joint"
+    later = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set, refinement=first.refinement,
+                        now_ns=10**10, joint_period_ns=None)
+    assert later.named_ids == fa.named_ids and later.refinement is first.refinement
+    from drillnav.service.joint_worker import JointSolveWorker
+
+    with JointSolveWorker(marker_set=scene.marker_set, joint_period_ns=10**9) as worker:
+        worker.wait_ready()
+        assert not worker.track(images[0], calibration=calibration, poses=poses, stamp_ns=0).named_ids
+        assert worker.track(image, calibration=calibration, poses=poses, stamp_ns=10**10).named_ids == fa.named_ids
+        assert worker.counters.requested == 0 and worker.refinement.at_ns == 0
+        assert not worker.track(images[0], calibration=calibration, poses=poses, stamp_ns=2 * 10**10).named_ids
+        assert worker.counters.requested == 1
 
     # Wrong names (the same outlines, their ids turned round) are not borne out: still refused.
     from dataclasses import replace
