@@ -23,6 +23,7 @@ Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/live_path.py [--seeds 3 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -83,6 +84,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="frames per sequence (30 per second of capture time)")
     ap.add_argument("--degradations", default="all", help="as benchmarks/accuracy.py: all | none | a,b,...")
     ap.add_argument("--ct", type=Path, default=CT, help="the real CT, the patient of the ct_anatomy degradation")
+    ap.add_argument("--save", type=Path, help="write every frame's figures (seed, pair, frame index added) to this JSON file")
     args = ap.parse_args()
     deg = Degradations.parse(args.degradations)
     patient = load_patient(args.ct) if deg.ct_anatomy else None
@@ -91,13 +93,15 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for k, (pair, views) in enumerate(_pairs(np.random.default_rng(seed)).items()):
             scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient)
-            seq = sequence(scene, seed=seed, k=k, frames=args.frames)
+            seq = [f | {"seed": seed, "pair": pair, "frame": j} for j, f in enumerate(sequence(scene, seed=seed, k=k, frames=args.frames))]
             frames += seq
             per_pair.setdefault(pair, []).extend(seq)
             done = [f for f in seq if "pos_mm" in f]
             worst = max((f["pos_mm"] for f in done), default=float("nan"))
             print(f"seed {seed} {pair:13s} frames {len(seq)} refused {len(seq) - len(done)} median "
                   f"{np.median([f['pos_mm'] for f in done]) if done else float('nan'):.2f} mm, worst {worst:.2f} mm", file=sys.stderr, flush=True)
+    if args.save:
+        args.save.write_text(json.dumps(frames, default=float))
     done = [f for f in frames if "pos_mm" in f]
     pos, ang = np.array([f["pos_mm"] for f in done]), np.array([f["ang_deg"] for f in done])
     ms = np.array([f["ms"] for f in frames])

@@ -17,6 +17,12 @@ the registration or calibration changed or the last solve is older than
 its covariance (carried with the drill, about a pivot fixed in D) for the
 predicted error. One frame (``drillnav register``) always runs the joint solve.
 
+The frames between are tracked only on the markers that solve refined and on those fluoroscopy alone poses
+firmly (two views or more, no mirror solution: :attr:`JointRefinement.tracked_poses`). A marker posed in one view
+is a few millimetres off along the beam, or mirrored, and nothing on the tracking path weighs it: a frame that
+would be tracked on fewer markers than it sees posed, below two, runs the joint solve instead, which weighs it (and
+refines it for the frames after).
+
 A live caller that can solve elsewhere (the registration node: a worker
 process) passes ``joint_period_ns=None``: a frame then runs the joint solve only
 when no refinement fits its registration and calibration, and the caller asks
@@ -55,10 +61,12 @@ from .markers import MarkerSet
 from .transforms import apply, invert
 from .video_fluoro import HORN_MIN_MARKERS, RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
 from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
+from .tracking_covariance import corner_pnp_covariance
 from .video_markers import VideoDetections, VideoMarkerLocator
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
-           "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "NAMED_MAX_FRE_MM", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS"]
+           "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "NAMED_MAX_FRE_MM", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS",
+           "frame_predicted_error"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
 # A joint registration on fewer markers than this (or none) tries the tags named among the posed markers
@@ -121,6 +129,7 @@ class JointRefinement:
     # as the solve estimated it; the frames after it draw their axis with it.
     detector_distortion_px: tuple = ()
     refined_ids: tuple[int, ...] = ()  # the markers the solve used (its poses in ``poses``)
+    reliable: bool = True  # the solve's own frame was (its 90 % bounds within the limits)
 
     @property
     def tracked_poses(self) -> tuple[MarkerPose, ...]:
@@ -143,7 +152,8 @@ def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tup
                  if p.marker_id in used and p.marker_id in reg.carm_from_marker else p for p in poses)
 
 
-def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration, at_ns: int) -> JointRefinement | None:
+def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration, at_ns: int,
+                     reliable: bool = True) -> JointRefinement | None:
     """What a joint solve ``reg`` (of ``poses`` with ``calibration``, on the frame stamped ``at_ns``) leaves for the frames after it.
 
     None when the solve gave no covariance (a fallback path): the next frame then solves again.
@@ -153,7 +163,7 @@ def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], c
     # reg.marker_poses adds the markers claimed through the video (edge-on in fluoroscopy): the frames after it use them too
     return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg), covariance_drill=reg.covariance_drill,
                            pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns,
-                           detector_distortion_px=reg.detector_distortion_px, refined_ids=tuple(reg.used_ids))
+                           detector_distortion_px=reg.detector_distortion_px, refined_ids=tuple(reg.used_ids), reliable=reliable)
 
 
 def refinement_fits(refinement: JointRefinement | None, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration) -> bool:
@@ -426,26 +436,65 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     # So is a frame that would be tracked on fewer markers than it sees posed, below two (a marker fluoroscopy poses
     # weakly is left to the joint solve, not dropped where one marker would remain).
     fits = refinement_fits(refinement, poses=poses, calibration=calibration)
-    fresh = (not video.markers or not fits or len(_shared_ids(video, refinement.tracked_poses)) < min(2, len(_shared_ids(video, in_use)))
-             or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns)))
+    can_track = fits and len(_shared_ids(video, refinement.tracked_poses)) >= max(1, min(2, len(_shared_ids(video, in_use))))
+    fresh = not can_track or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns))
+    tracked = None
     if fresh:
         try:
-            video, reg = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=not searched, **recover)
+            solved_video, solved = register_with_recovery(image, video, poses=poses, marker_set=marker_set, search=not searched, **recover)
         except MarkersNotFound:
             if not video.markers:
                 raise MarkersNotFound(f"no marker of the marker set ({len(marker_set.ids)} ids) is visible in the camera frame") from None
             raise
+        solved_pe = frame_predicted_error(solved_video, solved.marker_poses or poses, solved, calibration=calibration, limits=limits, fluoro_poses=fluoro_poses)
         # A registration on named tags (outline corners, a few millimetres) gives this frame its axis, but does not
         # replace a refinement that still fits: the markers it refined are tracked on frames whose tags ArUco reads.
-        named = any(m.named_among_posed for m in video.markers if m.marker_id in reg.used_ids)
-        if not (named and fits):
-            refinement = joint_refinement(reg, poses=poses, calibration=calibration, at_ns=now_ns)
-    else:  # tracking: predicted from this frame's Horn + PnP registration on the joint-refined markers
-        video, reg = register_with_recovery(image, video, poses=refinement.tracked_poses, marker_set=marker_set, joint=False, search=False, **recover)
-        reg = replace(reg, covariance_drill=refinement.covariance_drill, pivot_carm_mm=apply(reg.carm_from_drill, refinement.pivot_drill_mm),
-                      method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
-        poses = refinement.poses
-    poses = reg.marker_poses or poses  # with the markers claimed through the video (edge-on in fluoroscopy)
+        # Nor does a solve its own bound flags replace one that gave reliable frames (two markers, one of them posed
+        # wrong, can throw a re-solve 100 mm off): the frame is tracked on that one where it sees one of its markers.
+        named = any(m.named_among_posed for m in solved_video.markers if m.marker_id in solved.used_ids)
+        keep = fits and (named or (refinement.reliable and not solved_pe[1].reliable))
+        if not keep:
+            refinement = joint_refinement(solved, poses=poses, calibration=calibration, at_ns=now_ns, reliable=solved_pe[1].reliable)
+        elif not named:  # tried now: the next try is a period away
+            refinement = replace(refinement, at_ns=now_ns)
+            if _shared_ids(video, refinement.tracked_poses):
+                tracked = _tracked(image, video, refinement=refinement, marker_set=marker_set, recover=recover)
+        if tracked is None:
+            video, reg, poses, (work, pe) = solved_video, solved, solved.marker_poses or poses, solved_pe
+    else:
+        tracked = _tracked(image, video, refinement=refinement, marker_set=marker_set, recover=recover)
+    if tracked is not None:
+        video, reg = tracked
+        poses = reg.marker_poses or refinement.poses
+        work, pe = frame_predicted_error(video, poses, reg, calibration=calibration, limits=limits, fluoro_poses=fluoro_poses)
+    axis = calibration.axis_drill.transformed(reg.carm_from_drill)
+    return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
+                     refinement=refinement)
+
+
+def _tracked(image: NDArray[np.uint8], video: VideoDetections, *, refinement: JointRefinement, marker_set: MarkerSet,
+             recover: dict) -> tuple[VideoDetections, DrillRegistration]:
+    """Tracking: this frame's Horn + PnP registration on the joint-refined markers.
+
+    Its covariance is the solve's (the markers' uncertainty) plus its own corners' on the markers it used, those held
+    fixed (:func:`.tracking_covariance.corner_pnp_covariance`; each corner's noise the larger of its tag's stated
+    noise and the fit's RMS residual): a frame tracked on one tag is far less sure of the drill's tilt than the
+    solve's frame on three.
+    """
+    video, reg = register_with_recovery(image, video, poses=refinement.tracked_poses, marker_set=marker_set, joint=False, search=False, **recover)
+    pivot = apply(reg.carm_from_drill, refinement.pivot_drill_mm)
+    vids = video.by_id()
+    ids = [i for i in reg.used_ids if i in vids and i in reg.carm_from_marker]
+    points = np.concatenate([apply(reg.carm_from_marker[i], marker_set.by_id(i).tag_corners_mm()) for i in ids])
+    sigma = np.repeat([max(vids[i].corner_sigma_px, reg.corner_rms_px) for i in ids], 4)
+    own = corner_pnp_covariance(reg.carm_from_drill, points_carm_mm=points, sigma_px=sigma, camera=recover["camera"], pivot_carm_mm=pivot)
+    return video, replace(reg, covariance_drill=refinement.covariance_drill + own, pivot_carm_mm=pivot,
+                          method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
+
+
+def frame_predicted_error(video: VideoDetections, poses: tuple[MarkerPose, ...], reg: DrillRegistration, *, calibration: LiveCalibration,
+                 limits: ReliableLimits, fluoro_poses: tuple[MarkerPose, ...]) -> tuple[NDArray[np.float64], PredictedError]:
+    """The working point (3,) (the axis point nearest the centroid of the markers used, frame C, mm) and the predicted error there."""
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
     work = axis.closest_point(centroid)
@@ -453,5 +502,4 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     pe = predicted_axis_error(video, poses, reg, calibration.axis_drill, working_point_carm_mm=work, axis_sigma_mm=u.sigma_mm,
                               axis_sigma_deg=u.per_direction_deg, position_limit_mm=limits.position_mm, angle_limit_deg=limits.angle_deg,
                               fluoro_poses=fluoro_poses)  # vectorised: ~1 ms
-    return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
-                     refinement=refinement)
+    return work, pe

@@ -222,7 +222,8 @@ class Status(_Message):
     ct_similarity_gc: float | None = None
     ct_last_error: str | None = None
     joint_solves: dict[str, NonNegInt] | None = Field(None, description="the periodic joint solve: requested of its worker process, adopted, "
-                                                      "late (adopted by a later frame), restarted (its worker died), dropped, failed")
+                                                      "late (adopted by a later frame), restarted (its worker died), dropped, failed, "
+                                                      "unreliable (flagged by its own bound where the refinement in use was not: not adopted)")
 
 
 @_bind

@@ -36,8 +36,8 @@ from numpy.typing import NDArray
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.marker_pose import MarkerPose
 from drillnav.registration.markers import MarkerSet
-from drillnav.registration.pipeline import (JOINT_PERIOD_NS, FrameAxis, JointRefinement, LiveCalibration, ReliableLimits, joint_refinement,
-                                            refinement_due, track_frame)
+from drillnav.registration.pipeline import (JOINT_PERIOD_NS, FrameAxis, JointRefinement, LiveCalibration, ReliableLimits, frame_predicted_error,
+                                            joint_refinement, refinement_due, refinement_fits, track_frame)
 from drillnav.registration.video_fluoro import DrillRegistration, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections
 
@@ -79,6 +79,7 @@ class JointSolveCounters:
     restarted: int = 0      # given again to a new worker process, the old one having died
     dropped: int = 0        # requested under a registration or calibration replaced before adoption
     failed: int = 0         # the solve raised, or the worker stuck (the frames keep the refinement they had)
+    unreliable: int = 0     # flagged by its own bound where the refinement in use was not: not adopted (kept that one)
     last_failure: str | None = None
 
 
@@ -89,6 +90,7 @@ class _Pending:
     poses: tuple[MarkerPose, ...]
     calibration: LiveCalibration
     future: concurrent.futures.Future
+    limits: ReliableLimits = ReliableLimits()
     late: bool = False  # its adoption was due and it was not done
 
 
@@ -158,7 +160,7 @@ class JointSolveWorker:
         if (self._pending is None and fa.refinement is not None and self._pool is not None and not fa.named_ids
                 and refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns)):
             future = self._submit(fa.video, poses, calibration.camera)
-            self._pending = _Pending(at_ns=stamp_ns, video=fa.video, poses=poses, calibration=calibration, future=future)
+            self._pending = _Pending(at_ns=stamp_ns, video=fa.video, poses=poses, calibration=calibration, future=future, limits=limits)
             self.counters.requested += 1
         return fa
 
@@ -198,8 +200,17 @@ class JointSolveWorker:
             self.counters.failed += 1
             self.counters.last_failure = reg
             return None
+        _, pe = frame_predicted_error(p.video, reg.marker_poses or p.poses, reg, calibration=p.calibration, limits=p.limits, fluoro_poses=p.poses)
+        current = self.refinement
+        if not pe.reliable and refinement_fits(current, poses=p.poses, calibration=p.calibration) and current.reliable:
+            # Flagged by its own bound where the refinement in use gave reliable frames (two markers, one posed wrong,
+            # can throw a solve 100 mm off): the frames keep that one, and the next period tries again.
+            self.counters.unreliable += 1
+            self.counters.last_failure = (f"the periodic solve was flagged unreliable (90 % bounds {pe.position90_mm:.1f} mm, "
+                                          f"{pe.angle90_deg:.1f} deg); the refinement before it kept")
+            return replace(current, at_ns=p.at_ns)
         self.counters.adopted += 1
-        return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns)
+        return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns, reliable=pe.reliable)
 
     def _replace_pool(self) -> None:
         if self._pool is not None:

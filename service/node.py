@@ -499,7 +499,7 @@ class RegistrationNode:
             bad_messages=dict(c.bad_messages), loop_errors=dict(c.loop_errors), thread_restarts=c.thread_restarts,
             latency_ms_p50=float(np.percentile(lat, 50)), latency_ms_p99=float(np.percentile(lat, 99)),
             last_error=self.last_error, calibrated=self.calibration is not None, **ct,
-            joint_solves={k: int(getattr(self.joint.counters, k)) for k in ("requested", "adopted", "late", "restarted", "dropped", "failed")},
+            joint_solves={k: int(getattr(self.joint.counters, k)) for k in ("requested", "adopted", "late", "restarted", "dropped", "failed", "unreliable")},
         )
 
     def health(self) -> str | None:
