@@ -21,7 +21,9 @@ The frames between are tracked only on the markers that solve refined and on tho
 firmly (two views or more, no mirror solution: :attr:`JointRefinement.tracked_poses`). A marker posed in one view
 is a few millimetres off along the beam, or mirrored, and nothing on the tracking path weighs it: a frame that
 would be tracked on fewer markers than it sees posed, below two, runs the joint solve instead, which weighs it (and
-refines it for the frames after).
+refines it for the frames after). A solve flagged by its own bound does not replace a refinement whose frame was
+reliable; the frame is then tracked on that one. A tracked frame's covariance is the solve's plus its own corners'
+noise (:mod:`.tracking_covariance`).
 
 A live caller that can solve elsewhere (the registration node: a worker
 process) passes ``joint_period_ns=None``: a frame then runs the joint solve only
