@@ -17,12 +17,15 @@ posed markers (``FrameAxis.named_ids``), or refused.
 
 Reference (Vagdargi et al. 2021): median 0.9 mm / 2.0 deg with 2 views and 5 markers (Sec. 3.1); 96.2 ms per
 frame for the whole video loop (Table 4).
-Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/live_path.py [--seeds 3 --first-seed 3000 --frames 30]
+``--worker`` runs the frames as the node does instead: ``JointSolveWorker.track``, the periodic solve in a worker
+process, a frame that sees a weakly posed marker beside one tracked marker tracked and its solve asked of the worker.
+Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/live_path.py [--seeds 3 --first-seed 3000 --frames 30] [--worker]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -41,12 +44,14 @@ from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import JOINT_PERIOD_NS, LiveCalibration, track_frame
+from drillnav.service.joint_worker import JointSolveWorker
 
 FRAME_NS = 33_333_333  # 30 frames/s of capture time
 
 
-def sequence(scene, *, seed: int, k: int, frames: int) -> list[dict]:
-    """One freehand sequence of ``scene`` (seeded by seed and view pair k) through ``track_frame``: a dict per frame."""
+def sequence(scene, *, seed: int, k: int, frames: int, worker: JointSolveWorker | None = None) -> list[dict]:
+    """One freehand sequence of ``scene`` (seeded by seed and view pair k) through ``track_frame`` (or ``worker``'s
+    ``track``, as the node runs it): a dict per frame."""
     image_rng = np.random.default_rng([seed, k, 1])
     dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
     poses = register_markers(dets, list(scene.views.values()), scene.marker_set)
@@ -59,8 +64,11 @@ def sequence(scene, *, seed: int, k: int, frames: int) -> list[dict]:
         image = scene.render_camera(camera_rng, carm_from_drill=carm_from_drill)
         t0 = time.perf_counter_ns()
         try:
-            fa = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set, refinement=refinement,
-                             now_ns=j * FRAME_NS, joint_period_ns=JOINT_PERIOD_NS)
+            if worker is not None:
+                fa = worker.track(image, calibration=calibration, poses=poses, stamp_ns=j * FRAME_NS)
+            else:
+                fa = track_frame(image, calibration=calibration, poses=poses, marker_set=scene.marker_set, refinement=refinement,
+                                 now_ns=j * FRAME_NS, joint_period_ns=JOINT_PERIOD_NS)
         except DrillnavError as exc:
             out.append({"kind": "refused", "ms": (time.perf_counter_ns() - t0) / 1e6, "reason": str(exc).split(" (")[0]})
             continue
@@ -73,8 +81,18 @@ def sequence(scene, *, seed: int, k: int, frames: int) -> list[dict]:
         out.append({"kind": kind, "ms": ms, "pos_mm": float(np.linalg.norm(fa.axis_full_carm.closest_point(entry) - truth.closest_point(entry))),
                     "work_mm": float(np.linalg.norm(work - truth.closest_point(work))),
                     "ang_deg": fa.axis_full_carm.angle_deg(truth), "b90_mm": pe.position90_mm, "b90_deg": pe.angle90_deg,
-                    "reliable": pe.reliable, "used": len(fa.registration.used_ids)})
+                    "reliable": pe.reliable, "used": len(fa.registration.used_ids), "wants_solve": bool(getattr(fa, "wants_solve", False))})
     return out
+
+
+def _record(frames: list[dict], per_pair: dict[str, list[dict]], seq: list[dict], *, seed: int, pair: str) -> None:
+    seq = [f | {"seed": seed, "pair": pair, "frame": j} for j, f in enumerate(seq)]
+    frames += seq
+    per_pair.setdefault(pair, []).extend(seq)
+    done = [f for f in seq if "pos_mm" in f]
+    worst = max((f["pos_mm"] for f in done), default=float("nan"))
+    print(f"seed {seed} {pair:13s} frames {len(seq)} refused {len(seq) - len(done)} median "
+          f"{np.median([f['pos_mm'] for f in done]) if done else float('nan'):.2f} mm, worst {worst:.2f} mm", file=sys.stderr, flush=True)
 
 
 def main() -> None:
@@ -84,22 +102,26 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="frames per sequence (30 per second of capture time)")
     ap.add_argument("--degradations", default="all", help="as benchmarks/accuracy.py: all | none | a,b,...")
     ap.add_argument("--ct", type=Path, default=CT, help="the real CT, the patient of the ct_anatomy degradation")
+    ap.add_argument("--worker", action="store_true", help="as the node runs: the periodic solve in JointSolveWorker (each adopting frame "
+                    "waits for its solve, so the figures do not hang on this machine's load; its wall time then includes that wait)")
     ap.add_argument("--save", type=Path, help="write every frame's figures (seed, pair, frame index added) to this JSON file")
     args = ap.parse_args()
     deg = Degradations.parse(args.degradations)
     patient = load_patient(args.ct) if deg.ct_anatomy else None
     frames: list[dict] = []
     per_pair: dict[str, list[dict]] = {}
-    for seed in range(args.first_seed, args.first_seed + args.seeds):
-        for k, (pair, views) in enumerate(_pairs(np.random.default_rng(seed)).items()):
-            scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient)
-            seq = [f | {"seed": seed, "pair": pair, "frame": j} for j, f in enumerate(sequence(scene, seed=seed, k=k, frames=args.frames))]
-            frames += seq
-            per_pair.setdefault(pair, []).extend(seq)
-            done = [f for f in seq if "pos_mm" in f]
-            worst = max((f["pos_mm"] for f in done), default=float("nan"))
-            print(f"seed {seed} {pair:13s} frames {len(seq)} refused {len(seq) - len(done)} median "
-                  f"{np.median([f['pos_mm'] for f in done]) if done else float('nan'):.2f} mm, worst {worst:.2f} mm", file=sys.stderr, flush=True)
+    with contextlib.ExitStack() as stack:
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            for k, (pair, views) in enumerate(_pairs(np.random.default_rng(seed)).items()):
+                scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient)
+                worker = None
+                if args.worker:
+                    worker = stack.enter_context(JointSolveWorker(marker_set=scene.marker_set, wait_s=30.0))
+                    worker.wait_ready()
+                seq = sequence(scene, seed=seed, k=k, frames=args.frames, worker=worker)
+                if worker is not None:
+                    worker.close()
+                _record(frames, per_pair, seq, seed=seed, pair=pair)
     if args.save:
         args.save.write_text(json.dumps(frames, default=float))
     done = [f for f in frames if "pos_mm" in f]
@@ -130,6 +152,7 @@ def main() -> None:
         figure("bound covers position (working point)", 100.0 * float(np.mean(work <= np.array([f["b90_mm"] for f in done]))), "%"),
         figure("bound covers angle", 100.0 * float(np.mean(ang <= np.array([f["b90_deg"] for f in done]))), "%"),
         figure("errors over 10 mm or 10 deg not flagged", float(sum((f["pos_mm"] > 10 or f["ang_deg"] > 10) and f["reliable"] for f in done)), "n"),
+        figure("frames tracked that asked for a solve (worker)", float(sum(f.get("wants_solve", False) for f in frames)), "n"),
         figure("frame wall p50", pct(ms, 50), "ms", 96.2),
         figure("frame wall p99", pct(ms, 99), "ms", 96.2),
     ]
@@ -138,8 +161,9 @@ def main() -> None:
         if len(a):
             figs += [figure(f"{kind} frames: wall p50", pct(a, 50), "ms", 96.2), figure(f"{kind} frames: wall max", float(a.max()), "ms", 96.2)]
     report("live_path", figs, seeds=f"{args.first_seed}-{args.first_seed + args.seeds - 1}", frames_per_sequence=args.frames,
-           degradations=deg.label(), load_average_1min=round(os.getloadavg()[0], 1),
-           note="track_frame with the joint solve inline every JOINT_PERIOD_NS; one process on a shared 2-core machine")
+           degradations=deg.label(), mode="worker" if args.worker else "inline", load_average_1min=round(os.getloadavg()[0], 1),
+           note=("JointSolveWorker.track, the periodic solve in its worker process (adopting frames wait for it)" if args.worker else
+                 "track_frame with the joint solve inline every JOINT_PERIOD_NS") + "; a shared 2-core machine")
 
 
 if __name__ == "__main__":

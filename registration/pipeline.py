@@ -389,6 +389,9 @@ class FrameAxis:
     axis_full_carm: Line3D
     predicted_error: PredictedError
     refinement: JointRefinement | None = None  # hand it to the next frame's track_frame
+    # Tracked on fewer markers than it sees posed (solve_untracked False): a joint solve of this frame would weigh
+    # the others (a marker fluoroscopy posed in one view); the caller should run one.
+    wants_solve: bool = False
 
     @property
     def working_point_carm_mm(self) -> NDArray[np.float64]:
@@ -403,12 +406,15 @@ class FrameAxis:
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
                 limits: ReliableLimits = ReliableLimits(), refinement: JointRefinement | None = None, now_ns: int = 0,
-                joint_period_ns: int | None = JOINT_PERIOD_NS, previous_carm_from_drill: NDArray[np.float64] | None = None) -> FrameAxis:
+                joint_period_ns: int | None = JOINT_PERIOD_NS, previous_carm_from_drill: NDArray[np.float64] | None = None,
+                solve_untracked: bool = True) -> FrameAxis:
     """The drill axis in C from one camera frame and the fluoroscopy marker poses.
 
     ``limits``: the 90 % bounds above which the axis is flagged unreliable (``predicted_error.reliable``).
     ``refinement``, ``now_ns``: the previous frame's :class:`JointRefinement` and a monotonic time (live callers;
-    see the module docstring); without them the frame runs the joint solve. ``joint_period_ns`` None: an old
+    see the module docstring); without them the frame runs the joint solve. ``solve_untracked`` False: a frame
+    that would be tracked on fewer markers than it sees posed, below two, is tracked on its one marker and flagged
+    ``wants_solve`` instead of solved here (a caller with a worker). ``joint_period_ns`` None: an old
     refinement is never re-solved here (the caller schedules that; a refinement of another registration or
     calibration still is). A frame registered afresh on tags named among the posed markers (``FrameAxis.named_ids``)
     hands on the refinement it was given where that still fits, not one of its own outline corners.
@@ -438,7 +444,12 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
     # So is a frame that would be tracked on fewer markers than it sees posed, below two (a marker fluoroscopy poses
     # weakly is left to the joint solve, not dropped where one marker would remain).
     fits = refinement_fits(refinement, poses=poses, calibration=calibration)
-    can_track = fits and len(_shared_ids(video, refinement.tracked_poses)) >= max(1, min(2, len(_shared_ids(video, in_use))))
+    tracked_seen = len(_shared_ids(video, refinement.tracked_poses)) if fits else 0
+    can_track = tracked_seen >= max(1, min(2, len(_shared_ids(video, in_use))))
+    # A caller that solves elsewhere (solve_untracked False: the node's worker) has such a frame tracked on the one
+    # marker it can use, and asks for a solve (FrameAxis.wants_solve) that weighs the others.
+    wants_solve = not can_track and tracked_seen >= 1 and not solve_untracked
+    can_track = can_track or wants_solve
     fresh = not can_track or (joint_period_ns is not None and refinement_due(refinement, now_ns=now_ns, joint_period_ns=joint_period_ns))
     tracked = None
     if fresh:
@@ -471,7 +482,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         work, pe = frame_predicted_error(video, poses, reg, calibration=calibration, limits=limits, fluoro_poses=fluoro_poses)
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     return FrameAxis(video=video, registration=reg, axis_carm=Line3D(point_mm=work, direction=axis.direction), axis_full_carm=axis, predicted_error=pe,
-                     refinement=refinement)
+                     refinement=refinement, wants_solve=wants_solve and tracked is not None)
 
 
 def _tracked(image: NDArray[np.uint8], video: VideoDetections, *, refinement: JointRefinement, marker_set: MarkerSet,

@@ -153,12 +153,13 @@ class JointSolveWorker:
         last = self._last
         previous = last[2] if last is not None and last[1] is poses and 0 <= stamp_ns - last[0] <= PREVIOUS_POSE_NS else None
         fa = track_frame(image, calibration=calibration, poses=poses, marker_set=self.marker_set, limits=limits, refinement=self.refinement,
-                         now_ns=stamp_ns, joint_period_ns=None, previous_carm_from_drill=previous)
+                         now_ns=stamp_ns, joint_period_ns=None, previous_carm_from_drill=previous, solve_untracked=False)
         self.refinement = fa.refinement
         self._last = (stamp_ns, poses, fa.registration.carm_from_drill)
         # A frame registered on named tags (outline corners) is not the periodic solve's frame: the next one may be.
+        # So is a frame tracked on fewer markers than it sees posed: it asks for its solve now, not a period later.
         if (self._pending is None and fa.refinement is not None and self._pool is not None and not fa.named_ids
-                and refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns)):
+                and (fa.wants_solve or refinement_due(fa.refinement, now_ns=stamp_ns, joint_period_ns=self.joint_period_ns))):
             future = self._submit(fa.video, poses, calibration.camera)
             self._pending = _Pending(at_ns=stamp_ns, video=fa.video, poses=poses, calibration=calibration, future=future, limits=limits)
             self.counters.requested += 1

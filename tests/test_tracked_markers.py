@@ -57,3 +57,21 @@ def test_a_marker_fluoroscopy_poses_weakly_is_left_to_the_joint_solve_not_tracke
     assert WEAK in pulled.used_ids and before > 3.0
     assert fa.registration.method == "joint" and WEAK in fa.registration.used_ids and after < 2.0
     assert WEAK in fa.refinement.refined_ids and WEAK in {p.marker_id for p in fa.refinement.tracked_poses}
+
+    # The node's worker: the same frame is tracked on marker 9 alone (no solve on the frame path) and asks for its
+    # solve at once; a frame 0.1 s of capture time later adopts it, marker 42 refined.
+    from drillnav.service.joint_worker import JointSolveWorker
+
+    with JointSolveWorker(marker_set=scene.marker_set, wait_s=30.0) as worker:
+        worker.wait_ready()
+        assert worker.track(shots[0][1], calibration=calibration, poses=poses, stamp_ns=0).registration.method == "joint"
+        stamp = FRAME * 33_333_333
+        deferred = worker.track(image, calibration=calibration, poses=poses, stamp_ns=stamp)
+        assert deferred.wants_solve and deferred.registration.method == "horn+pnp on joint-refined markers"
+        assert WEAK not in deferred.registration.used_ids and worker.counters.requested == 1
+        after = worker.track(image, calibration=calibration, poses=poses, stamp_ns=stamp + 100_000_000)
+        assert worker.counters.adopted == 1 and WEAK in after.refinement.refined_ids
+        assert not after.wants_solve and WEAK in after.registration.used_ids
+        print(f"worker: frame {FRAME} tracked on {deferred.registration.used_ids} {_error_mm(deferred.axis_full_carm, scene, carm_from_drill):.2f} mm, "
+              f"reliable {deferred.predicted_error.reliable}; after the solve {_error_mm(after.axis_full_carm, scene, carm_from_drill):.2f} mm")
+        assert _error_mm(after.axis_full_carm, scene, carm_from_drill) < 2.0
