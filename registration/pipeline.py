@@ -21,7 +21,8 @@ The frames between are tracked only on the markers that solve refined and on tho
 firmly (two views or more, no mirror solution: :attr:`JointRefinement.tracked_poses`). A marker posed in one view
 is a few millimetres off along the beam, or mirrored, and nothing on the tracking path weighs it: a frame that
 would be tracked on fewer markers than it sees posed, below two, runs the joint solve instead, which weighs it (and
-refines it for the frames after). A solve flagged by its own bound does not replace a refinement whose frame was
+refines it for the frames after); a caller with a worker (``solve_untracked=False``) has it tracked on what it can
+use and flagged ``FrameAxis.wants_solve``, and runs that solve in the worker. A solve flagged by its own bound does not replace a refinement whose frame was
 reliable; the frame is then tracked on that one. A tracked frame's covariance is the solve's plus its own corners'
 noise (:mod:`.tracking_covariance`).
 
