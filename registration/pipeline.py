@@ -22,8 +22,8 @@ firmly (two views or more, no mirror solution: :attr:`JointRefinement.tracked_po
 is a few millimetres off along the beam, or mirrored, and nothing on the tracking path weighs it: a frame that
 would be tracked on fewer markers than it sees posed, below two, runs the joint solve instead, which weighs it (and
 refines it for the frames after); a caller with a worker (``solve_untracked=False``) has it tracked on what it can
-use and flagged ``FrameAxis.wants_solve``, and runs that solve in the worker. A solve flagged by its own bound does not replace a refinement whose frame was
-reliable; the frame is then tracked on that one. A tracked frame's covariance is the solve's plus its own corners'
+use and flagged ``FrameAxis.wants_solve``, and runs that solve in the worker. A solve flagged by its own bound does
+not replace a refinement whose frame was reliable; the frame is then tracked on that one. A tracked frame's covariance is the solve's plus its own corners'
 noise (:mod:`.tracking_covariance`).
 
 A live caller that can solve elsewhere (the registration node: a worker
@@ -141,7 +141,8 @@ class JointRefinement:
         Those the solve refined, and those fluoroscopy alone poses firmly: in two views or more, with no mirror
         solution, identified without the camera. A marker posed in one view (its depth along the beam a few
         millimetres off) or with its mirror still open would pull a frame's axis that way where it has no joint solve to
-        weigh it: a frame that sees no other marker is registered afresh.
+        weigh it: a frame that would rest on fewer than two of these while it sees more posed is solved (in the node,
+        tracked on what it can use while the worker solves it).
         """
         refined = set(self.refined_ids)
         return tuple(p for p in self.poses if p.marker_id in refined or (
@@ -472,7 +473,10 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         elif not named:  # tried now: the next try is a period away
             refinement = replace(refinement, at_ns=now_ns)
             if _shared_ids(video, refinement.tracked_poses):
-                tracked = _tracked(image, video, refinement=refinement, marker_set=marker_set, recover=recover)
+                try:
+                    tracked = _tracked(image, video, refinement=refinement, marker_set=marker_set, recover=recover)
+                except DrillnavError:  # the solve's own (flagged) axis, then
+                    tracked = None
         if tracked is None:
             video, reg, poses, (work, pe) = solved_video, solved, solved.marker_poses or poses, solved_pe
     else:
@@ -499,15 +503,17 @@ def _tracked(image: NDArray[np.uint8], video: VideoDetections, *, refinement: Jo
     pivot = apply(reg.carm_from_drill, refinement.pivot_drill_mm)
     vids = video.by_id()
     ids = [i for i in reg.used_ids if i in vids and i in reg.carm_from_marker]
-    points = np.concatenate([apply(reg.carm_from_marker[i], marker_set.by_id(i).tag_corners_mm()) for i in ids])
-    sigma = np.repeat([max(vids[i].corner_sigma_px, reg.corner_rms_px) for i in ids], 4)
-    own = corner_pnp_covariance(reg.carm_from_drill, points_carm_mm=points, sigma_px=sigma, camera=recover["camera"], pivot_carm_mm=pivot)
+    own = np.zeros((6, 6))
+    if ids:  # every marker used has its tag and its pose (register_video_to_fluoro): never empty in practice
+        points = np.concatenate([apply(reg.carm_from_marker[i], marker_set.by_id(i).tag_corners_mm()) for i in ids])
+        sigma = np.repeat([max(vids[i].corner_sigma_px, reg.corner_rms_px) for i in ids], 4)
+        own = corner_pnp_covariance(reg.carm_from_drill, points_carm_mm=points, sigma_px=sigma, camera=recover["camera"], pivot_carm_mm=pivot)
     return video, replace(reg, covariance_drill=refinement.covariance_drill + own, pivot_carm_mm=pivot,
                           method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
 
 
 def frame_predicted_error(video: VideoDetections, poses: tuple[MarkerPose, ...], reg: DrillRegistration, *, calibration: LiveCalibration,
-                 limits: ReliableLimits, fluoro_poses: tuple[MarkerPose, ...]) -> tuple[NDArray[np.float64], PredictedError]:
+                          limits: ReliableLimits, fluoro_poses: tuple[MarkerPose, ...]) -> tuple[NDArray[np.float64], PredictedError]:
     """The working point (3,) (the axis point nearest the centroid of the markers used, frame C, mm) and the predicted error there."""
     axis = calibration.axis_drill.transformed(reg.carm_from_drill)
     centroid = np.mean([p.position_carm_mm for p in poses if p.marker_id in reg.used_ids], axis=0)
