@@ -23,7 +23,8 @@ is a few millimetres off along the beam, or mirrored, and nothing on the trackin
 would be tracked on fewer markers than it sees posed, below two, runs the joint solve instead, which weighs it (and
 refines it for the frames after); a caller with a worker (``solve_untracked=False``) has it tracked on what it can
 use and flagged ``FrameAxis.wants_solve``, and runs that solve in the worker. A solve flagged by its own bound does
-not replace a refinement whose frame was reliable; the frame is then tracked on that one. A tracked frame's covariance is the solve's plus its own corners'
+not replace a refinement whose frame was surer (reliable, or flagged with smaller bounds); the frame is then tracked
+on that one. A tracked frame's covariance is the solve's plus its own corners'
 noise (:mod:`.tracking_covariance`).
 
 A live caller that can solve elsewhere (the registration node: a worker
@@ -133,6 +134,20 @@ class JointRefinement:
     detector_distortion_px: tuple = ()
     refined_ids: tuple[int, ...] = ()  # the markers the solve used (its poses in ``poses``)
     reliable: bool = True  # the solve's own frame was (its 90 % bounds within the limits)
+    bound90: tuple[float, float] = (0.0, 0.0)  # the solve's own frame's 90 % bounds (mm at its working point, deg)
+
+    def better_than(self, predicted: PredictedError, *, limits: ReliableLimits) -> bool:
+        """Whether this refinement's frame was surer than a new solve's frame, whose ``predicted`` error is given.
+
+        A reliable solve is never worse. A flagged one is worse than a reliable refinement, and than a flagged one
+        whose 90 % bounds, each over its limit, are smaller.
+        """
+        if predicted.reliable:
+            return False
+        if self.reliable:
+            return True
+        score = lambda p, a: max(p / limits.position_mm, a / limits.angle_deg)  # noqa: E731
+        return score(*self.bound90) < score(predicted.position90_mm, predicted.angle90_deg)
 
     @property
     def tracked_poses(self) -> tuple[MarkerPose, ...]:
@@ -157,8 +172,10 @@ def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tup
 
 
 def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration, at_ns: int,
-                     reliable: bool = True) -> JointRefinement | None:
+                     predicted: PredictedError | None = None) -> JointRefinement | None:
     """What a joint solve ``reg`` (of ``poses`` with ``calibration``, on the frame stamped ``at_ns``) leaves for the frames after it.
+
+    ``predicted``: the solve's frame's predicted error (its reliability and bounds ride with the refinement).
 
     None when the solve gave no covariance (a fallback path): the next frame then solves again.
     """
@@ -167,7 +184,8 @@ def joint_refinement(reg: DrillRegistration, *, poses: tuple[MarkerPose, ...], c
     # reg.marker_poses adds the markers claimed through the video (edge-on in fluoroscopy): the frames after it use them too
     return JointRefinement(source_poses=poses, calibration=calibration, poses=_refined_poses(reg.marker_poses or poses, reg), covariance_drill=reg.covariance_drill,
                            pivot_drill_mm=apply(invert(reg.carm_from_drill), reg.pivot_carm_mm), at_ns=at_ns,
-                           detector_distortion_px=reg.detector_distortion_px, refined_ids=tuple(reg.used_ids), reliable=reliable)
+                           detector_distortion_px=reg.detector_distortion_px, refined_ids=tuple(reg.used_ids),
+                           **({} if predicted is None else dict(reliable=predicted.reliable, bound90=(predicted.position90_mm, predicted.angle90_deg))))
 
 
 def refinement_fits(refinement: JointRefinement | None, *, poses: tuple[MarkerPose, ...], calibration: LiveCalibration) -> bool:
@@ -464,12 +482,12 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         solved_pe = frame_predicted_error(solved_video, solved.marker_poses or poses, solved, calibration=calibration, limits=limits, fluoro_poses=fluoro_poses)
         # A registration on named tags (outline corners, a few millimetres) gives this frame its axis, but does not
         # replace a refinement that still fits: the markers it refined are tracked on frames whose tags ArUco reads.
-        # Nor does a solve its own bound flags replace one that gave reliable frames (two markers, one of them posed
+        # Nor does a solve its own bound flags replace one that gave surer frames (two markers, one of them posed
         # wrong, can throw a re-solve 100 mm off): the frame is tracked on that one where it sees one of its markers.
         named = any(m.named_among_posed for m in solved_video.markers if m.marker_id in solved.used_ids)
-        keep = fits and (named or (refinement.reliable and not solved_pe[1].reliable))
+        keep = fits and (named or refinement.better_than(solved_pe[1], limits=limits))
         if not keep:
-            refinement = joint_refinement(solved, poses=poses, calibration=calibration, at_ns=now_ns, reliable=solved_pe[1].reliable)
+            refinement = joint_refinement(solved, poses=poses, calibration=calibration, at_ns=now_ns, predicted=solved_pe[1])
         elif not named:  # tried now: the next try is a period away
             refinement = replace(refinement, at_ns=now_ns)
             if _shared_ids(video, refinement.tracked_poses):

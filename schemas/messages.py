@@ -223,7 +223,7 @@ class Status(_Message):
     ct_last_error: str | None = None
     joint_solves: dict[str, NonNegInt] | None = Field(None, description="the periodic joint solve: requested of its worker process, adopted, "
                                                       "late (adopted by a later frame), restarted (its worker died), dropped, failed, "
-                                                      "unreliable (flagged by its own bound where the refinement in use was not: not adopted)")
+                                                      "unreliable (flagged by its own bound and less sure than the refinement in use: not adopted)")
 
 
 @_bind

@@ -79,7 +79,7 @@ class JointSolveCounters:
     restarted: int = 0      # given again to a new worker process, the old one having died
     dropped: int = 0        # requested under a registration or calibration replaced before adoption
     failed: int = 0         # the solve raised, or the worker stuck (the frames keep the refinement they had)
-    unreliable: int = 0     # flagged by its own bound where the refinement in use was not: not adopted (kept that one)
+    unreliable: int = 0     # flagged by its own bound, and less sure than the refinement in use: not adopted (kept that one)
     last_failure: str | None = None
 
 
@@ -203,15 +203,15 @@ class JointSolveWorker:
             return None
         _, pe = frame_predicted_error(p.video, reg.marker_poses or p.poses, reg, calibration=p.calibration, limits=p.limits, fluoro_poses=p.poses)
         current = self.refinement
-        if not pe.reliable and refinement_fits(current, poses=p.poses, calibration=p.calibration) and current.reliable:
-            # Flagged by its own bound where the refinement in use gave reliable frames (two markers, one posed wrong,
+        if refinement_fits(current, poses=p.poses, calibration=p.calibration) and current.better_than(pe, limits=p.limits):
+            # Flagged by its own bound where the refinement in use gave surer frames (two markers, one posed wrong,
             # can throw a solve 100 mm off): the frames keep that one, and the next period tries again.
             self.counters.unreliable += 1
             self.counters.last_failure = (f"the periodic solve was flagged unreliable (90 % bounds {pe.position90_mm:.1f} mm, "
                                           f"{pe.angle90_deg:.1f} deg); the refinement before it kept")
             return replace(current, at_ns=p.at_ns)
         self.counters.adopted += 1
-        return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns, reliable=pe.reliable)
+        return joint_refinement(reg, poses=p.poses, calibration=p.calibration, at_ns=p.at_ns, predicted=pe)
 
     def _replace_pool(self) -> None:
         if self._pool is not None:

@@ -3,11 +3,12 @@
 import os
 import signal
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from drillnav.registration.pipeline import JOINT_PERIOD_NS, LiveCalibration, ReliableLimits, track_frame
+from drillnav.registration.pipeline import JOINT_PERIOD_NS, JointRefinement, LiveCalibration, ReliableLimits, track_frame
 from drillnav.service.joint_worker import JointSolveWorker
 from twin_replay import recorded_live_inputs
 
@@ -63,11 +64,28 @@ def test_a_re_solve_flagged_by_its_own_bound_does_not_replace_a_reliable_refinem
     # The same re-solve under the usual limits is adopted.
     adopted = track_frame(frames[1], calibration=cal, poses=poses, marker_set=scene.marker_set, refinement=first.refinement, now_ns=JOINT_PERIOD_NS)
     assert adopted.registration.method == "joint" and adopted.refinement.poses is not first.refinement.poses
-    # A refinement that was itself flagged gives way to the new solve, flagged or not.
+    # A refinement that was itself flagged gives way to a flagged solve with smaller bounds, not to one with larger.
     flagged = track_frame(frames[0], calibration=cal, poses=poses, marker_set=scene.marker_set, now_ns=0, limits=STRICT).refinement
-    assert not flagged.reliable
-    again = track_frame(frames[1], calibration=cal, poses=poses, marker_set=scene.marker_set, refinement=flagged, now_ns=JOINT_PERIOD_NS, limits=STRICT)
-    assert again.registration.method == "joint" and again.refinement.poses is not flagged.poses
+    assert not flagged.reliable and flagged.bound90 == (first.predicted_error.position90_mm, first.predicted_error.angle90_deg)
+    for bound, replaced in ((1e3, True), (1e-9, False)):
+        worse = replace(flagged, bound90=(bound, bound))
+        again = track_frame(frames[1], calibration=cal, poses=poses, marker_set=scene.marker_set, refinement=worse, now_ns=JOINT_PERIOD_NS, limits=STRICT)
+        assert (again.refinement.poses is not worse.poses) == replaced
+        assert again.registration.method == ("joint" if replaced else "horn+pnp on joint-refined markers")
+
+
+def test_which_of_a_refinement_and_a_new_solve_is_surer():
+    from drillnav.registration.video_fluoro import PredictedError
+
+    limits = ReliableLimits(position_mm=2.0, angle_deg=2.0)
+    pe = lambda p, a, ok: PredictedError(position_mm=p, angle_deg=a, cone_half_angle_deg=a, position90_mm=p, angle90_deg=a, reliable=ok)  # noqa: E731
+    ref = lambda p, a, ok: JointRefinement(source_poses=(), calibration=None, poses=(), covariance_drill=np.eye(6), pivot_drill_mm=np.zeros(3),  # noqa: E731
+                                           at_ns=0, reliable=ok, bound90=(p, a))
+    assert not ref(1.0, 1.0, True).better_than(pe(0.5, 0.5, True), limits=limits)   # a reliable solve is never worse
+    assert not ref(1.0, 1.0, True).better_than(pe(3.0, 3.0, True), limits=limits)
+    assert ref(1.0, 1.0, True).better_than(pe(1.0, 1.0, False), limits=limits)       # flagged (one marker): worse than reliable
+    assert ref(3.0, 1.0, False).better_than(pe(1.0, 5.0, False), limits=limits)      # 1.5 x its limit against 2.5 x
+    assert not ref(3.0, 1.0, False).better_than(pe(2.5, 2.5, False), limits=limits)  # against 1.25 x
 
 
 def test_the_worker_does_not_adopt_a_periodic_solve_flagged_by_its_own_bound(live):
