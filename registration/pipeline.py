@@ -420,8 +420,12 @@ class FrameAxis:
     @property
     def named_ids(self) -> tuple[int, ...]:
         """The markers the registration used whose tags were named among the posed markers (outline corners)."""
-        used = set(self.registration.used_ids)
-        return tuple(sorted(m.marker_id for m in self.video.markers if m.named_among_posed and m.marker_id in used))
+        return _named_ids(self.video, self.registration)
+
+
+def _named_ids(video: VideoDetections, reg: DrillRegistration) -> tuple[int, ...]:
+    used = set(reg.used_ids)
+    return tuple(sorted(m.marker_id for m in video.markers if m.named_among_posed and m.marker_id in used))
 
 
 def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
@@ -484,7 +488,7 @@ def track_frame(image: NDArray[np.uint8], *, calibration: LiveCalibration, poses
         # replace a refinement that still fits: the markers it refined are tracked on frames whose tags ArUco reads.
         # Nor does a solve its own bound flags replace one that gave surer frames (two markers, one of them posed
         # wrong, can throw a re-solve 100 mm off): the frame is tracked on that one where it sees one of its markers.
-        named = any(m.named_among_posed for m in solved_video.markers if m.marker_id in solved.used_ids)
+        named = bool(_named_ids(solved_video, solved))
         keep = fits and (named or refinement.better_than(solved_pe[1], limits=limits))
         if not keep:
             refinement = joint_refinement(solved, poses=poses, calibration=calibration, at_ns=now_ns, predicted=solved_pe[1])

@@ -392,16 +392,12 @@ class VideoMarkerLocator:
         and markers already in ``video`` are skipped. A found marker is flagged ``recovered``, its covariance
         computed with ``RECOVERED_CORNER_SIGMA_PX``. Returns ``video`` itself when nothing was found.
         """
-        have = {m.marker_id for m in video.markers}
-        todo = {int(i) for i in marker_ids} - have
-        if not todo:
+        missing = self._missing(video, marker_ids)
+        if not missing:
             return video
         gray = _gray(image)
         found: list[VideoMarker] = []
-        for name, per in self._specs.items():
-            wanted = [a for a, spec in per.items() if spec.marker_id in todo]
-            if not wanted:
-                continue
+        for name, per, wanted in missing:
             for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)],
                                    half_above_px=self.detect_below_px):
                 found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
@@ -417,21 +413,27 @@ class VideoMarkerLocator:
         ``OUTLINE_CORNER_SIGMA_PX`` (``RECOVERED_CORNER_SIGMA_PX`` where its edges were fitted). They are not added to
         ``video``: a caller adds them only where a registration bears them out.
         """
-        have = {m.marker_id for m in video.markers}
-        todo = {int(i) for i in marker_ids} - have
-        if not todo:
+        missing = self._missing(video, marker_ids)
+        if not missing:
             return ()
         gray = _gray(image)
         named: list[VideoMarker] = []
-        for name, per in self._specs.items():
-            wanted = [a for a, spec in per.items() if spec.marker_id in todo]
-            if not wanted:
-                continue
+        for name, per, wanted in missing:
             for hyp in outline_hypotheses(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers],
                                           half_above_px=self.detect_below_px):
                 sigma = RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX
                 named.append(replace(self._pose(per[hyp.aruco_id], hyp.corners_px, corner_sigma_px=sigma), named_among_posed=True))
         return tuple(sorted(named, key=lambda m: m.marker_id))
+
+    def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:
+        """Per dictionary with any: (its name, its tag specs by ArUco id, the ArUco ids of ``marker_ids`` that ``video`` misses)."""
+        todo = {int(i) for i in marker_ids} - {m.marker_id for m in video.markers}
+        missing = []
+        for name, per in self._specs.items():
+            wanted = [a for a, spec in per.items() if spec.marker_id in todo]
+            if wanted:
+                missing.append((name, per, wanted))
+        return missing
 
     def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
         k, dist = self.camera.camera_matrix, self.camera.distortion
