@@ -36,6 +36,21 @@ def wait_for(cond, timeout_s: float) -> bool:
     return bool(cond())
 
 
+def put_when_matched(session, key_expr: str, payloads, timeout_s: float = 30.0) -> None:
+    """Each payload put once on ``key_expr`` as the daemon puts a shot: blocking under congestion (zenoh's default for a
+    put drops it when the link is full, and a loaded CI machine lost a megabyte shot that way), and only once a
+    subscriber has reached ``session`` (a put before that is lost)."""
+    import zenoh
+
+    publisher = session.declare_publisher(key_expr, congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        assert wait_for(lambda: publisher.matching_status.matching, timeout_s), f"no subscriber on {key_expr} reached the publisher"
+        for p in payloads:
+            publisher.put(p)
+    finally:
+        publisher.undeclare()
+
+
 # Modules of pure computation: no server, process, thread, session or browser, and no clock read. `make test` runs
 # them on several workers (`pytest -m compute -n ...`), then the rest in one process, where every wall-clock bound a
 # test states holds on a 2-core machine. tests/test_suite_split.py checks each module listed here against that.

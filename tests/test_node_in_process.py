@@ -18,19 +18,16 @@ from drillnav.service.bus import open_session
 from drillnav.service.node import RegistrationNode
 from drillnav.service.replay import iter_recording
 
-from conftest import free_endpoint, wait_for
+from conftest import free_endpoint, put_when_matched, wait_for
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 
 
 def register_both_views(pub, prefix, node, shots):
-    """Both recorded views registered (a shot put before the node's subscription reached the publisher is lost: put again)."""
-    for _ in range(10):
-        for s in shots:
-            pub.put(key(prefix, "fluoro_shot"), s)
-        if wait_for(lambda: len(node.status().views) == len(shots), 3):
-            return
-    raise AssertionError(f"the node did not register both views: {node.status()}")
+    """Both recorded views registered."""
+    put_when_matched(pub, key(prefix, "fluoro_shot"), shots)
+    if not wait_for(lambda: len(node.status().views) == len(shots), 60):
+        raise AssertionError(f"the node did not register both views: {node.status()}")
 
 
 def _why(node: RegistrationNode) -> str:
@@ -132,12 +129,8 @@ def test_the_status_names_a_view_only_once_frames_are_tracked_against_it(monkeyp
     register_markers = node_module.register_markers
     monkeypatch.setattr(node_module, "register_markers", slow_register)
     with node_and_axes(scene) as (pub, node, axes):
-        for _ in range(10):  # a put before the node's subscription reached the publisher is lost: put again
-            for s in shots:
-                pub.put(key("drillnav", "fluoro_shot"), s)
-            if registering.wait(3):
-                break
-        assert registering.is_set(), _why(node)
+        put_when_matched(pub, key("drillnav", "fluoro_shot"), shots)
+        assert registering.wait(30), _why(node)
         assert len(node.shots) >= 1 and node.status().views == (), _why(node)  # held, not yet registered: not named
         assert wait_for(lambda: len(node.status().views) == len(shots), 30), _why(node)
         node.take_frame(image, stamp)
@@ -189,11 +182,8 @@ def test_a_view_whose_markers_all_wait_on_the_camera_registers_and_its_frames_gi
     with node_and_axes(scene) as (pub, node, axes):
         sub = pub.declare_subscriber(key("drillnav", "fluoro_markers"), lambda s: published.append(json.loads(s.payload.to_bytes())))
         try:
-            for _ in range(10):  # a shot put before the node's subscription reached the publisher is lost: put again
-                pub.put(key("drillnav", "fluoro_shot"), shot.to_bytes())
-                if wait_for(lambda: node.status().views == (VIEW,), 3):
-                    break
-            assert node.status().views == (VIEW,), _why(node)
+            put_when_matched(pub, key("drillnav", "fluoro_shot"), [shot.to_bytes()])
+            assert wait_for(lambda: node.status().views == (VIEW,), 30), _why(node)
             assert wait_for(lambda: bool(published), 5), _why(node)
             assert published[-1]["markers"] == [], published[-1]  # the loose match is a hypothesis, not a marker's pose
             stamp = time.time_ns()

@@ -19,7 +19,7 @@ from drillnav.service.bus import open_session
 from drillnav.service.node import RegistrationNode
 from drillnav.service.replay import iter_recording
 
-from conftest import free_endpoint, wait_for
+from conftest import free_endpoint, put_when_matched, wait_for
 
 RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "twin-seed21.mcap"
 FPS = 20.0
@@ -84,9 +84,7 @@ def rig():
                               axis_drill=scene.calibrated_axis_drill, overlay_period_s=0.5) as node:
             r = Rig(pub, node, shots)
             sub = pub.declare_subscriber("drillnav/**", r.on_sample)
-            time.sleep(0.3)
-            for s in shots:
-                pub.put(key("drillnav", "fluoro_shot"), s)
+            put_when_matched(pub, key("drillnav", "fluoro_shot"), shots)
             assert wait_for(lambda: node.registration_id >= 1, 30), node.status()
 
             def feed():
