@@ -163,8 +163,14 @@ def test_slicer_client_gets_drill_pose_image_and_reconnects():
                 def newest_arrived():
                     poses = client.of(igtl.DEVICE_DRILL_TO_CARM)
                     return bool(poses and axes) and abs(poses[-1][3] - axes[-1]["source_frame_stamp_ns"]) < 1000
-                deadline = time.monotonic() + 5
-                while time.monotonic() < deadline and not newest_arrived():
+                # The node may still be tracking the last frame when the player returns: wait until its axes have
+                # stopped coming (one second without a new one) and the newest of them has reached the client.
+                deadline, seen, quiet_since = time.monotonic() + 30, -1, time.monotonic()
+                while time.monotonic() < deadline:
+                    if len(axes) != seen:
+                        seen, quiet_since = len(axes), time.monotonic()
+                    elif time.monotonic() - quiet_since > 1.0 and newest_arrived():
+                        break
                     time.sleep(0.05)
                 images = client.wait_for("Fluoro-inlet") + client.wait_for("Fluoro-outlet")
             got = client.of(igtl.DEVICE_DRILL_TO_CARM)
