@@ -9,13 +9,17 @@ Here the frame is thresholded as ArUco does (locally, at half resolution, a thin
 and each dark region's convex hull, which closes over the code's white cells and over the bite, is simplified to
 a polygon. A four-sided hull is a candidate as it is. A hull of 5 to 7 sides gives the quadrilaterals that four of
 its sides make, their corners where consecutive sides' lines cross (a hidden corner lies beyond the bite), kept
-when the hull lies within the quadrilateral and fills at least ``MIN_FILL`` of it. Then, for each candidate:
+when the hull lies within the quadrilateral and fills at least ``MIN_FILL`` of it: the ``QUADS_PER_HULL`` best
+filled, since the best filled is not always the tag (a glove over one corner leaves a short stretch of the edge
+beyond it, and dropping that stretch's side instead of the glove's fills better). Then, for each candidate:
 
 1. its four border edges are fitted as a predicted tag's are (:func:`.tag_recovery.fit_tag_edges`);
 2. its code is read at each of its four rotations (:func:`.tag_recovery.read_code`) and judged over every id of
    the dictionary at every rotation: accepted only when at least ``min_cells`` cells are read, at least
    ``min_agreement`` of them agree with the best (id, rotation), no other (id, rotation) comes within
    ``min_margin_cells`` of it, and that id is one of those asked for.
+
+A tag partly out of the frame is looked for on what of it is in the frame (its edges and cells in the frame).
 
 No place vouches for a tag found this way, so the identity rule is the dictionary-wide one of
 :mod:`.tag_recovery` (the fewer-cells rule among the marker set's tags needs a predicted place and is not used).
@@ -35,11 +39,16 @@ from numpy.typing import NDArray
 
 from .tag_recovery import dictionary_codes, fit_tag_edges, read_code
 
-__all__ = ["FoundTag", "tag_candidates", "identify_quad", "search_tags", "MIN_FILL"]
+__all__ = ["FoundTag", "tag_candidates", "identify_quad", "search_tags", "MIN_FILL", "QUADS_PER_HULL", "MAX_CANDIDATES"]
 
 MIN_FILL = 0.7           # a candidate quadrilateral's area the dark region's hull must fill
 THRESHOLD_WINDOWS = (19, 31)  # px at half resolution: ArUco's adaptive-threshold windows for tags 40-200 px across
 MAX_HULL_SIDES = 7       # a square with one bite: 5-6 sides; more is not a tag
+QUADS_PER_HULL = 3       # the best-filled quadrilaterals of one hull tried as candidates
+# Candidates are taken largest first and the frame's background makes many large ones: on the operating-room twin
+# (seeds 7001-7010, frames with every tag degraded) a gloved tag's right quadrilateral ranked up to 31st.
+MAX_CANDIDATES = 64
+SAME_QUAD_PX = 6.0       # two candidates whose corners all lie this close (px, at some rotation) are one
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,7 +109,17 @@ def _quads_of_hull(hull: NDArray[np.float64]) -> list[tuple[float, NDArray[np.fl
     return [(float(fill[i]), quads[i]) for i in order if ok[i]]
 
 
-def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_candidates: int = 24, half_above_px: int = 800,
+def _same_as_any(quad: NDArray[np.float64], kept: NDArray[np.float64]) -> bool:
+    """Whether a candidate (4, 2) px is one of ``kept`` (m, 4, 2), same winding: at some rotation every corner within
+    ``SAME_QUAD_PX``."""
+    if not len(kept):
+        return False
+    turns = np.stack([np.roll(quad, -k, axis=0) for k in range(4)])                 # (4, 4, 2)
+    worst = np.linalg.norm(kept[:, None] - turns[None], axis=3).max(axis=2)          # (m, 4)
+    return bool((worst <= SAME_QUAD_PX).any())
+
+
+def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_candidates: int = MAX_CANDIDATES, half_above_px: int = 800,
                    exclude_px: Sequence[NDArray[np.float64]] = ()) -> list[NDArray[np.float64]]:
     """Candidate tag outlines (4, 2) px, full resolution, OpenCV winding, in a grayscale frame (H, W) uint8: four-sided
     dark regions and dark regions with a bite (see the module docstring), at most ``max_candidates``, largest first.
@@ -126,7 +145,7 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
             poly = cv2.approxPolyDP(hull, 0.02 * perimeter, True).reshape(-1, 2).astype(np.float64)
             if not 4 <= len(poly) <= MAX_HULL_SIDES:
                 continue
-            for _, quad in _quads_of_hull(poly)[:2]:
+            for _, quad in _quads_of_hull(poly)[:QUADS_PER_HULL]:
                 quad = (quad + 0.5) * (sx, sy) - 0.5
                 if _signed_area(quad) < 0:
                     quad = quad[::-1].copy()
@@ -141,7 +160,7 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
         centre = tuple(float(c) for c in quad.mean(axis=0))
         if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):
             continue
-        if all(np.abs(np.sort(quad.sum(axis=1)) - np.sort(k.sum(axis=1))).max() > 6.0 for k in kept):
+        if not _same_as_any(quad, np.asarray(kept).reshape(-1, 4, 2)):
             kept.append(quad)
         if len(kept) == max_candidates:
             break
@@ -149,14 +168,15 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
 
 
 def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, dictionary: str, wanted: Sequence[int], min_cells: int = 20,
-                  min_agreement: float = 0.9, min_margin_cells: int = 4, min_contrast: float = 30.0) -> FoundTag | None:
+                  min_agreement: float = 0.9, min_margin_cells: int = 4, min_contrast: float = 30.0, partial: bool = False) -> FoundTag | None:
     """The tag whose fitted corners (4, 2) px (OpenCV winding, any rotation) are given, when its code names one of
-    ``wanted`` (ArUco ids of ``dictionary``) by the rule of the module docstring; None otherwise."""
+    ``wanted`` (ArUco ids of ``dictionary``) by the rule of the module docstring; None otherwise. ``partial``: read
+    on the cells in the frame (:func:`.tag_recovery.read_code`)."""
     codes = dictionary_codes(dictionary)
     flat = codes.reshape(len(codes), -1)
     agree = []
     for k in range(4):
-        read = read_code(gray, np.roll(corners, -k, axis=0), code_size=codes.shape[1], min_contrast=min_contrast)
+        read = read_code(gray, np.roll(corners, -k, axis=0), code_size=codes.shape[1], min_contrast=min_contrast, partial=partial)
         if read.reason:
             return None
         agree.append(((flat == read.bits[None, :]) & read.known[None, :]).sum(axis=1))
@@ -194,12 +214,12 @@ def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[in
         if any(cv2.pointPolygonTest(t, centre, False) >= 0 for t in taken):
             continue
         # A cheap look first: the outline's border reads black against a white base (a bite costs a few cells).
-        if read_code(gray_f, quad, code_size=code_size).reason:
+        if read_code(gray_f, quad, code_size=code_size, partial=True).reason:
             continue
-        edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px)
+        edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px, partial=True)
         if not edges.accepted:
             continue
-        tag = identify_quad(gray_f, edges.corners_px, dictionary=dictionary, wanted=[i for i in wanted if i not in found])
+        tag = identify_quad(gray_f, edges.corners_px, dictionary=dictionary, wanted=[i for i in wanted if i not in found], partial=True)
         if tag is not None:
             found[tag.aruco_id] = tag
             taken.append(tag.corners_px.astype(np.float32).reshape(-1, 1, 2))

@@ -141,10 +141,11 @@ def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_
           f"under a 90 % bound of {pe.position90_mm:.2f} mm, {pe.angle90_deg:.2f} deg, reliable {pe.reliable}")
     # Every name is right (its marker's tag lies where it was named), its corners as good as an outline.
     assert all(e < 6 * OUTLINE_CORNER_SIGMA_PX for e in corner_err.values())
-    # Outline corners give an axis a few millimetres off (4.65 mm, 3.10 deg when written), and a bound that says so:
-    # wider than the limit, so the axis is flagged for the display to grey out.
+    # Outline corners weigh a few pixels each: the axis is as good as the named tags make it (4.65 mm, 3.10 deg when
+    # this was written, flagged; 0.15 mm, 0.43 deg on five named tags once a gloved tag's outline was tried past the best-filled
+    # one), and its bound holds the error or the axis is flagged for the display to grey out.
     assert error < 10.0 and axis.angle_deg(true_axis) < 5.0
-    assert pe.position90_mm > 0.5 * error and not pe.reliable
+    assert (error <= pe.position90_mm and axis.angle_deg(true_axis) <= pe.angle90_deg) or not pe.reliable
 
     # The live frame path does the same on the frame it registers afresh.
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
