@@ -19,7 +19,8 @@ product passes its registration's): a tag of the set placed away from a missed o
 
 The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
 :mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
-false ones, their corners' RMS error and the search's time per frame. And tags cut by the frame's edge (at least
+false ones, their corners' RMS error and the search's time per frame; the search reads a tag cut by the frame's edge
+on what of it is in the frame, so such a tag found by it is scored against its true corners, not counted false. And tags cut by the frame's edge (at least
 60 % of their area in it), which ArUco never finds, looked for where they are predicted (on what of them is in the
 frame): tags recovered, false ones, and their corners' RMS error, the corners outside the frame included. Markers
 placed as a surgeon places them (``--conditions surgeon_markers``) spread wider than the camera's field. Last, the
@@ -121,9 +122,10 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                 t0 = time.perf_counter()
                 searched = locator.search(frame, det, scene.marker_set.ids)
                 r["search_seconds"] += time.perf_counter() - t0
-                _score_recovered(searched, truth, r, "searched")
-                # Tags cut by the frame's edge (ArUco never finds them), looked for where they are predicted.
+                # Tags cut by the frame's edge (ArUco never finds them): the search reads them on what is in the frame, and
+                # the recovery looks for them where they are predicted.
                 cut = _true_corners(scene, pose, partly=True)
+                _score_recovered(searched, {**truth, **cut}, r, "searched")
                 r["partly_visible"] += len(cut)
                 predicted_cut = {i: predict_tag_corners(carm_from_drill=pose, carm_from_marker=scene.carm_from_marker[i],
                                                         tag_corners_marker_mm=scene.marker_set.by_id(i).tag_corners_mm(), camera=scene.calibrated_camera)
