@@ -68,14 +68,38 @@ class MarkerPose:
 MIRROR_RATIO = 3.0
 
 
+# BBs whose design positions spread less than this (mm, RMS across their best-fit line) are collinear: a line of BBs
+# leaves the marker's turn about that line free, and no view poses it.
+MIN_OFF_LINE_MM = 0.5
+
+
 def planar_candidates(view: CArmView, obj: NDArray[np.float64], img: NDArray[np.float64]) -> list[NDArray[np.float64]]:
-    """Both IPPE solutions (carm_from_marker (4, 4)) of a planar marker from one view's BBs (N >= 4)."""
+    """Both planar solutions (carm_from_marker (4, 4)) of a marker from one view's BBs: design centres obj (N, 3) mm
+    in the marker's plane (z = 0), detected centres img (N, 2) px, N >= 4.
+
+    IPPE gives both. Its homography needs four points no three of which are collinear, and four BBs often have
+    three on one line (the central BB between two opposite ones): there IPPE gives nothing, and SQPnP's solution is
+    taken with its mirror, the same image in weak perspective: the layout turned half a turn in its plane, then the
+    whole half a turn about the beam through the marker, its normal mirrored about that beam. Both are refined by
+    the caller. Raises ValueError when the BBs are collinear (checked first: IPPE returns an arbitrary turn about
+    their line) or no solution is found.
+    """
+    centred = obj[:, :2] - obj[:, :2].mean(axis=0)
+    if len(obj) < 4 or np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(obj)) < MIN_OFF_LINE_MM:
+        raise ValueError("the marker's BBs are collinear: no planar pose")
     k, source_from_carm = view.decompose()
-    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, None, flags=cv2.SOLVEPNP_IPPE)
-    if not n:
-        raise ValueError("IPPE failed for the marker's BBs")
     carm_from_source = invert(source_from_carm)
-    return [carm_from_source @ make_transform(cv2.Rodrigues(r)[0], t.ravel()) for r, t in zip(rvecs, tvecs)]
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, None, flags=cv2.SOLVEPNP_IPPE)
+    if n:
+        return [carm_from_source @ make_transform(cv2.Rodrigues(r)[0], t.ravel()) for r, t in zip(rvecs, tvecs)]
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok or float(tvec.ravel()[2]) <= 0.0:
+        raise ValueError("no planar pose for the marker's BBs (IPPE and SQPnP failed)")
+    rotation, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    beam = t / np.linalg.norm(t)
+    half_turn_about_beam = 2.0 * np.outer(beam, beam) - np.eye(3)
+    mirror = half_turn_about_beam @ rotation @ np.diag([-1.0, -1.0, 1.0])
+    return [carm_from_source @ make_transform(r, t) for r in (rotation, mirror)]
 
 
 def _refine(observations, carm_from_marker0: NDArray[np.float64]):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import pytest
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, FluoroDetections
@@ -86,3 +88,60 @@ def test_a_marker_posed_in_one_view_claims_its_bbs_in_the_other_along_the_first_
     monkeypatch.setattr(marker_pose, "CROSS_VIEW_SLIDE_MM", 0.0)
     alone = {p.marker_id: p for p in register_markers(dets, [inlet, outlet], scene.marker_set)}[target]
     assert alone.n_views == 1 and np.linalg.norm(alone.position_carm_mm - true[:3, 3]) > 8.0
+
+
+def _three_on_a_line_and_one_off(design_mm: np.ndarray) -> list[int]:
+    """Design indices of four BBs, three of them on one line through the central BB (index 0), the fourth off it."""
+    xy = design_mm[:, :2] - design_mm[0, :2]
+
+    def cross(a, b):
+        return a[0] * b[1] - a[1] * b[0]
+
+    for i in range(1, len(xy)):
+        for j in range(i + 1, len(xy)):
+            if abs(cross(xy[i], xy[j])) < 1e-6:
+                off = [k for k in range(1, len(xy)) if abs(cross(xy[i], xy[k])) > 1.0]
+                return [i, 0, j, off[0]]
+    raise AssertionError("the design has no three BBs on a line")
+
+
+def test_four_bbs_three_of_them_on_a_line_still_pose_the_marker():
+    """Four identified BBs with three on one line (the central BB between two opposite ones) make IPPE's homography
+    degenerate: it gives no solution, and the marker went unposed in that view. Seen on the operating-room twin (seed
+    7001, AP view): marker 34 identified on BBs 5, 6, 0 and 2, not posed, its tag the only one the camera found, and the
+    AP view and the AP+lateral pair refused. Now SQPnP's solution and its mirror start the refinement."""
+    scene = make_scene(seed=23, views="inlet,outlet", render=False)
+    view = scene.views["inlet"]
+    rng = np.random.default_rng(11)
+    target = sorted(scene.carm_from_marker)[0]
+    true = scene.carm_from_marker[target]
+    design = scene.marker_set.by_id(target).bb_centers_mm
+    index = np.array(_three_on_a_line_and_one_off(design))
+    px = view.project(apply(true, design[index])) + rng.normal(scale=0.2, size=(4, 2))
+    k, _ = view.decompose()
+    assert not cv2.solvePnPGeneric(design[index], px, k, None, flags=cv2.SOLVEPNP_IPPE)[0], "IPPE solves these BBs: the fallback is not tested"
+    bbs = tuple(DetectedBB(center_px=c, diameter_px=8.0, large=False) for c in px)
+    det = FluoroDetections(markers=(DetectedMarker(marker_id=target, bbs=bbs, bb_index=index, ring_ellipse=((0.0, 0.0), (1.0, 1.0), 0.0),
+                                                   mirrored=False, identification_cost_mm=0.1),), rejected=(), blobs=bbs)
+    posed = {p.marker_id: p for p in register_markers([det], [view], scene.marker_set)}
+    assert target in posed, "the marker is not posed"
+    p = posed[target]
+    assert p.converged and p.residual_px < 0.6, p.residual_px
+    # One view, four BBs: the depth along the beam is loose, the rest is not; the normal is the pose's or its mirror's.
+    ray = (true[:3, 3] - view.source_position_mm) / np.linalg.norm(true[:3, 3] - view.source_position_mm)
+    off = p.position_carm_mm - true[:3, 3]
+    assert np.linalg.norm(off - (off @ ray) * ray) < 0.5 and abs(off @ ray) < 10.0, off
+    normals = [p.carm_from_marker[:3, 2]] + ([p.mirror_carm_from_marker[:3, 2]] if p.mirror_carm_from_marker is not None else [])
+    assert min(np.degrees(np.arccos(np.clip(n @ true[:3, 2], -1.0, 1.0))) for n in normals) < 5.0
+
+
+def test_collinear_bbs_give_no_planar_pose():
+    from drillnav.registration.marker_pose import planar_candidates
+
+    scene = make_scene(seed=23, views="inlet,outlet", render=False)
+    view = scene.views["inlet"]
+    target = sorted(scene.carm_from_marker)[0]
+    line = np.array([[-15.0, 0.0, 0.0], [0.0, 0.0, 0.0], [8.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
+    px = view.project(apply(scene.carm_from_marker[target], line))
+    with pytest.raises(ValueError, match="collinear"):
+        planar_candidates(view, line, px)
