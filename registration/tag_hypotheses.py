@@ -83,7 +83,9 @@ def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequ
     flat = codes.reshape(len(codes), -1)[ids]                                         # (w, s * s)
     gray_f = gray.astype(np.float32)
     best: dict[int, TagHypothesis] = {}
-    for quad in tag_candidates(gray, half_above_px=half_above_px, exclude_px=exclude_px):
+    # Outlines as they are: a corner put beyond the frame's edge by two sides' lines is for the search, whose edge fit
+    # places it; an outline named here keeps its own corners.
+    for quad in tag_candidates(gray, half_above_px=half_above_px, exclude_px=exclude_px, beyond_edge=False):
         edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px)
         corners = edges.corners_px if edges.accepted else quad
         agree = np.zeros((4, len(ids)), dtype=np.int64)

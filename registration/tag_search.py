@@ -19,7 +19,12 @@ beyond it, and dropping that stretch's side instead of the glove's fills better)
    ``min_agreement`` of them agree with the best (id, rotation), no other (id, rotation) comes within
    ``min_margin_cells`` of it, and that id is one of those asked for.
 
-A tag partly out of the frame is looked for on what of it is in the frame (its edges and cells in the frame).
+A tag partly out of the frame is looked for on what of it is in the frame (its edges and cells in the frame). Its
+dark region runs along the frame's edge, and the ends of that stretch are kept as vertices of the simplified hull
+(where the tag's sides leave the frame), in a second outline beside the closed hull's: dropping the stretch's side
+then puts the corner beyond the edge where the sides' lines cross, as for a bite. Only its quadrilaterals with a
+corner beyond the edge are added (the rest would only crowd the candidates: the frame's background touches the edge
+in many places).
 
 No place vouches for a tag found this way, so the identity rule is the dictionary-wide one of
 :mod:`.tag_recovery` (the fewer-cells rule among the marker set's tags needs a predicted place and is not used).
@@ -109,6 +114,32 @@ def _quads_of_hull(hull: NDArray[np.float64]) -> list[tuple[float, NDArray[np.fl
     return [(float(fill[i]), quads[i]) for i in order if ok[i]]
 
 
+def _outlines(hull: NDArray[np.int32], epsilon_px: float, *, width: int, height: int) -> list[NDArray[np.float64]]:
+    """A convex hull (m, 2) px of a region in a ``width`` x ``height`` frame simplified to polygons (n, 2)
+    (Douglas-Peucker, ``epsilon_px``): the closed hull's; and where the hull runs along the frame's edge, also one
+    that keeps the ends of its longest stretch there as vertices. Those ends are where a tag's sides leave the frame;
+    simplifying the closed hull merges them into one vertex on the edge when the tag is cut near a corner, in place
+    of the corner beyond the edge that the sides' lines meet at. Where a tag's sides show only a few pixels beside
+    the edge their lines are loose, and the closed hull's outline can be the better: both are tried."""
+    pts = hull.reshape(-1, 2).astype(np.int32)
+    closed = cv2.approxPolyDP(pts.reshape(-1, 1, 2), epsilon_px, True).reshape(-1, 2).astype(np.float64)
+    m = len(pts)
+    nxt = np.roll(pts, -1, axis=0)
+    along = ((pts[:, 0] == 0) & (nxt[:, 0] == 0)) | ((pts[:, 0] == width - 1) & (nxt[:, 0] == width - 1)) \
+        | ((pts[:, 1] == 0) & (nxt[:, 1] == 0)) | ((pts[:, 1] == height - 1) & (nxt[:, 1] == height - 1))
+    length = np.abs(nxt - pts).sum(axis=1) * along
+    if m < 3 or length.max() < 2:
+        return [closed]
+    start = (int(np.argmax(length)) + 1) % m                # the stretch's far end, then round the hull to its near end
+    chain = np.roll(pts, -start, axis=0)
+    return [closed, cv2.approxPolyDP(chain.reshape(-1, 1, 2), epsilon_px, False).reshape(-1, 2).astype(np.float64)]
+
+
+def _in_frame(quad: NDArray[np.float64], *, width: int, height: int, slack_px: float = 1.0) -> bool:
+    """Whether every corner of a quadrilateral (4, 2) px lies in a ``width`` x ``height`` frame (``slack_px`` beyond it)."""
+    return bool(((quad >= -slack_px) & (quad <= np.array([width - 1, height - 1]) + slack_px)).all())
+
+
 def _same_as_any(quad: NDArray[np.float64], kept: NDArray[np.float64]) -> bool:
     """Whether a candidate (4, 2) px is one of ``kept`` (m, 4, 2), same winding: at some rotation every corner within
     ``SAME_QUAD_PX``."""
@@ -120,13 +151,15 @@ def _same_as_any(quad: NDArray[np.float64], kept: NDArray[np.float64]) -> bool:
 
 
 def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_candidates: int = MAX_CANDIDATES, half_above_px: int = 800,
-                   exclude_px: Sequence[NDArray[np.float64]] = ()) -> list[NDArray[np.float64]]:
+                   exclude_px: Sequence[NDArray[np.float64]] = (), beyond_edge: bool = True) -> list[NDArray[np.float64]]:
     """Candidate tag outlines (4, 2) px, full resolution, OpenCV winding, in a grayscale frame (H, W) uint8: four-sided
     dark regions and dark regions with a bite (see the module docstring), at most ``max_candidates``, largest first.
 
     A frame wider than ``half_above_px`` is thresholded at half resolution (as the locator detects), a smaller one
     at its own. A candidate whose centre lies on one of ``exclude_px`` ((4, 2) corners of tags already found) is
-    left out before the count."""
+    left out before the count. ``beyond_edge``: also the quadrilaterals of a hull cut by the frame's edge whose
+    corner lies beyond it (see the module docstring); they are for a tag whose edges the fit then finds, and an
+    outline's corners alone place them loosely."""
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"expected a grayscale (H, W) uint8 frame, got {gray.dtype} {gray.shape}")
     h, w = gray.shape
@@ -142,10 +175,12 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
             perimeter = cv2.arcLength(hull, True)
             if perimeter < 4 * min_side_px / sx:
                 continue
-            poly = cv2.approxPolyDP(hull, 0.02 * perimeter, True).reshape(-1, 2).astype(np.float64)
-            if not 4 <= len(poly) <= MAX_HULL_SIDES:
-                continue
-            for _, quad in _quads_of_hull(poly)[:QUADS_PER_HULL]:
+            polys = _outlines(hull.reshape(-1, 2), 0.02 * perimeter, width=small.shape[1], height=small.shape[0])[: 2 if beyond_edge else 1]
+            quads = [q for poly in polys[:1] if 4 <= len(poly) <= MAX_HULL_SIDES for _, q in _quads_of_hull(poly)[:QUADS_PER_HULL]]
+            # The edge-kept outline is for a corner beyond the edge: its quadrilaterals that lie in the frame add nothing.
+            quads += [q for poly in polys[1:] if 4 <= len(poly) <= MAX_HULL_SIDES for _, q in _quads_of_hull(poly)[:QUADS_PER_HULL]
+                      if not _in_frame(q, width=small.shape[1], height=small.shape[0])]
+            for quad in quads:
                 quad = (quad + 0.5) * (sx, sy) - 0.5
                 if _signed_area(quad) < 0:
                     quad = quad[::-1].copy()
