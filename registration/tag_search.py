@@ -114,6 +114,14 @@ def _quads_of_hull(hull: NDArray[np.float64]) -> list[tuple[float, NDArray[np.fl
     return [(float(fill[i]), quads[i]) for i in order if ok[i]]
 
 
+def _best_quads(poly: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """The ``QUADS_PER_HULL`` best-filled quadrilaterals (4, 2) of a simplified hull (n, 2); none for a hull of under 4
+    or over ``MAX_HULL_SIDES`` sides."""
+    if not 4 <= len(poly) <= MAX_HULL_SIDES:
+        return []
+    return [q for _, q in _quads_of_hull(poly)[:QUADS_PER_HULL]]
+
+
 def _outlines(hull: NDArray[np.int32], epsilon_px: float, *, width: int, height: int) -> list[NDArray[np.float64]]:
     """A convex hull (m, 2) px of a region in a ``width`` x ``height`` frame simplified to polygons (n, 2)
     (Douglas-Peucker, ``epsilon_px``): the closed hull's; and where the hull runs along the frame's edge, also one
@@ -175,11 +183,10 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
             perimeter = cv2.arcLength(hull, True)
             if perimeter < 4 * min_side_px / sx:
                 continue
-            polys = _outlines(hull.reshape(-1, 2), 0.02 * perimeter, width=small.shape[1], height=small.shape[0])[: 2 if beyond_edge else 1]
-            quads = [q for poly in polys[:1] if 4 <= len(poly) <= MAX_HULL_SIDES for _, q in _quads_of_hull(poly)[:QUADS_PER_HULL]]
-            # The edge-kept outline is for a corner beyond the edge: its quadrilaterals that lie in the frame add nothing.
-            quads += [q for poly in polys[1:] if 4 <= len(poly) <= MAX_HULL_SIDES for _, q in _quads_of_hull(poly)[:QUADS_PER_HULL]
-                      if not _in_frame(q, width=small.shape[1], height=small.shape[0])]
+            closed, *at_edge = _outlines(hull.reshape(-1, 2), 0.02 * perimeter, width=small.shape[1], height=small.shape[0])
+            quads = _best_quads(closed)
+            if beyond_edge:  # the edge-kept outline is for a corner beyond the edge: its quadrilaterals in the frame add nothing
+                quads += [q for poly in at_edge for q in _best_quads(poly) if not _in_frame(q, width=small.shape[1], height=small.shape[0])]
             for quad in quads:
                 quad = (quad + 0.5) * (sx, sy) - 0.5
                 if _signed_area(quad) < 0:
