@@ -20,10 +20,11 @@ product passes its registration's): a tag of the set placed away from a missed o
 The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
 :mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
 false ones, their corners' RMS error and the search's time per frame; the search reads a tag cut by the frame's edge
-on what of it is in the frame, so such a tag found by it is scored against its true corners, not counted false. And tags cut by the frame's edge (at least
-60 % of their area in it), which ArUco never finds, looked for where they are predicted (on what of them is in the
-frame): tags recovered, false ones, and their corners' RMS error, the corners outside the frame included. Markers
-placed as a surgeon places them (``--conditions surgeon_markers``) spread wider than the camera's field. Last, the
+on what of it is in the frame, so such a tag found by it is scored against its true corners, not counted false.
+And tags cut by the frame's edge (at least 60 % of their area in it), which ArUco never finds, looked for where they
+are predicted (on what of them is in the frame): tags recovered, false ones, and their corners' RMS error, the
+corners outside the frame included. Markers placed as a surgeon places them (``--conditions surgeon_markers``)
+spread wider than the camera's field. Last, the
 missed tags predicted 10-22 px off (a random direction), as a registration on one or two markers predicts them, looked
 for within its reach (``recover(reach_px=pipeline.WEAK_REACH_PX)``, every marker's tag placed as its own moved
 prediction puts it): tags recovered, false ones, their corners' RMS error and the time per frame.
