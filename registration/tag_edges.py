@@ -34,6 +34,8 @@ class EdgeProfiles:
     inside : (n,) whether every sample point of the tag lies in the frame.
     sample_inside : (n, 4, s) whether every point of that sample's profile lies in the frame (a tag partly out of
         the frame is sampled with the border replicated; its samples outside say nothing).
+    point_inside : (n, 4, s, o) whether each point of each profile lies in the frame (an edge running just inside
+        the frame's edge has no profile wholly in it, but its step and the levels either side may be).
     """
 
     base_px: NDArray[np.float64]
@@ -43,6 +45,7 @@ class EdgeProfiles:
     length_px: NDArray[np.float64]
     inside: NDArray[np.bool_]
     sample_inside: NDArray[np.bool_]
+    point_inside: NDArray[np.bool_]
 
 
 def edge_profiles(gray: NDArray[np.float32], quads: NDArray[np.float64], *, along: NDArray[np.float64], offsets_px: NDArray[np.float64]) -> EdgeProfiles:
@@ -62,7 +65,8 @@ def edge_profiles(gray: NDArray[np.float32], quads: NDArray[np.float64], *, alon
     flat = pts.reshape(-1, len(offsets_px), 2).astype(np.float32)
     values = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return EdgeProfiles(base_px=base, normal=normal, offsets_px=np.asarray(offsets_px, dtype=np.float64),
-                        values=values.reshape(n, 4, len(along), len(offsets_px)), length_px=length, inside=inside, sample_inside=sample_inside)
+                        values=values.reshape(n, 4, len(along), len(offsets_px)), length_px=length, inside=inside, sample_inside=sample_inside,
+                        point_inside=in_frame)
 
 
 def step_positions(values: NDArray[np.float32], offsets_px: NDArray[np.float64], *, falling_inwards: bool = False) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:

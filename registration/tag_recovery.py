@@ -11,7 +11,8 @@ for there:
    (:mod:`.tag_edges`, as the locator refines detected tags) and kept only when it looks like a clean border step
    (its contrast near the edge's, its dark side unclipped, its bright side clipped only beyond the upper half of
    the step's gradient); a line is fitted to the kept samples, trimming the
-   outliers, and needs ``min_edge_fraction`` of the edge. The corners are the lines' intersections, so a hidden
+   outliers, and needs ``min_edge_fraction`` of the edge. An edge that runs just inside the frame's edge has
+   no profile wholly in the frame: its samples count where the step, its gradient and the levels either side are. The corners are the lines' intersections, so a hidden
    corner comes from its two edges' extensions. A tag with one edge hidden (a highlight or a finger over most of
    it, or the edge out of the frame) is placed, given the camera and the tag's size (``square``), by its pose
    fitted to the other three edges' steps (:mod:`.tag_square_fit`), when that fit places every corner within
@@ -72,6 +73,9 @@ MIN_SHARE_IN_FRAME = 0.6
 # A cell whose mean grey level is at least this is clipped (8 bits): a highlight's plateau at 255. A tag's white
 # cells can lie near 250 in a bright field (the print is whiter than the base), and noise lifts single pixels.
 SATURATED = 253.5
+# An edge with fewer than this share of its profiles wholly in the frame runs just inside the frame's edge: its
+# profiles count where the step's boxes lie in the frame (``border_steps``).
+HUGGING_SHARE = 0.3
 
 
 @lru_cache(maxsize=8)
@@ -125,10 +129,12 @@ def predict_tag_corners(*, carm_from_drill: NDArray[np.float64], carm_from_marke
 
 
 def _percentile_over_samples(values: NDArray[np.float64], valid: NDArray[np.bool_], q: float) -> NDArray[np.float64]:
-    """``np.nanpercentile(values, q, axis=1)`` (linear interpolation) over the samples where ``valid`` (e, s), for
-    values (e, s, o); -inf where no sample is valid. Vectorised: nanpercentile loops over every (e, o) in Python."""
-    ordered = np.sort(np.where(valid[..., None], values, np.inf), axis=1)             # the invalid ones last
-    n = valid.sum(axis=1)[:, None]                                                    # (e, 1)
+    """``np.nanpercentile(values, q, axis=1)`` (linear interpolation) over the samples where ``valid`` (e, s) or
+    (e, s, o), for values (e, s, o); -inf where no sample is valid. Vectorised: nanpercentile loops over every
+    (e, o) in Python."""
+    valid = np.broadcast_to(valid[..., None] if valid.ndim == 2 else valid, values.shape)
+    ordered = np.sort(np.where(valid, values, np.inf), axis=1)                        # the invalid ones last
+    n = valid.sum(axis=1)                                                             # (e, o)
     pos = (np.maximum(n, 1) - 1) * (q / 100.0)
     lo = np.floor(pos).astype(int)
     hi = np.minimum(lo + 1, np.maximum(n, 1) - 1)
@@ -284,8 +290,15 @@ def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolera
     in_tol = np.abs(cand) <= tolerance_px
     # A high percentile over the edge's samples: a step must run along most of what is visible of the edge. A
     # sample clipped along most of its profile (a highlight over the border) shows nothing, and is not counted.
-    blind = ((vals >= SATURATED).mean(axis=-1) > 0.5) | ~seen                         # (4, s); out of the frame: blind too
-    edge_score = _percentile_over_samples(contrast, ~blind, 60.0)                     # (4, o'), -inf where all are blind
+    # A sample whose profile leaves the frame counts only where both of a candidate's boxes lie in it, and only on
+    # an edge with too few profiles wholly in the frame (one that runs just inside the frame's edge): elsewhere
+    # the whole profiles suffice and nothing changes.
+    hugging = seen.mean(axis=1) < HUGGING_SHARE                                       # (4,)
+    box_in = _box_mean(prof.point_inside[0].astype(np.float64), gap) > 1.0 - 1e-9     # (4, s, o - gap + 1)
+    cand_in = box_in[..., gap:] & box_in[..., : box_in.shape[-1] - gap]               # (4, s, o')
+    usable = np.where(hugging[:, None, None], cand_in, seen[..., None])               # (4, s, o')
+    blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
+    edge_score = _percentile_over_samples(contrast, usable & ~blind[..., None], 60.0)  # (4, o'), -inf where none is seen
     edge_score[:, ~in_tol] = -np.inf
     best = np.argmax(edge_score, axis=1)
     edge_contrast = edge_score[np.arange(4), best]
@@ -313,6 +326,16 @@ def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolera
     lv_out = _levels_at(vals, offsets, pos, (1.5, 3.0))
     lv_in = _levels_at(vals, offsets, pos, (-3.0, -1.5))
     step_contrast = lv_out - lv_in
+    # On a hugging edge, a sample is seen when the upper half of its step's gradient (where the step is placed from,
+    # as wide as the blur) and the levels either side lie in the frame: beyond the frame the profile is the edge
+    # pixel replicated, which would cut the gradient short and pull the step inwards.
+    # The frame is convex: both ends of that stretch in it put the whole stretch in it.
+    half = np.maximum(3.5, step_width / 2.0 + 1.0)                                    # (4,)
+    reach_out = pos[..., None] + np.array([-1.0, 1.0]) * half[:, None, None]         # (4, s, 2)
+    ends = prof.base_px[0][:, :, None, :] + reach_out[..., None] * prof.normal[0][:, None, None, :]  # (4, s, 2, 2)
+    h, w = gray.shape
+    ends_in = ((ends >= 0.0).all(axis=-1) & (ends[..., 0] <= w - 1) & (ends[..., 1] <= h - 1)).all(axis=-1)  # (4, s)
+    seen = np.where(hugging[:, None], ends_in, seen)
     clean = found[:, None] & seen & stepped & (step_contrast >= 0.5 * edge_contrast[:, None]) & (step_contrast <= 2.0 * edge_contrast[:, None] + 20.0)
     # A clipped black side is a highlight over the border. A clipped bright side (an over-exposed base) is harmless
     # unless the clip cuts into the upper half of the step's gradient, which pulls the step inwards.

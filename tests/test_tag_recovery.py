@@ -263,6 +263,56 @@ def test_the_edge_scores_percentile_is_numpys_over_the_seen_samples():
         assert np.allclose(got[np.isfinite(got)], expected[np.isfinite(expected)])
 
 
+def test_the_edge_scores_percentile_takes_a_mask_per_offset():
+    """Masked per (edge, sample, offset), as an edge running just inside the frame's edge is, the percentile is
+    numpy's over each offset's unmasked samples, and -inf where none is."""
+    from drillnav.registration.tag_recovery import _percentile_over_samples
+
+    rng = np.random.default_rng(1)
+    values = rng.normal(size=(4, 48, 30)) * 50
+    valid = rng.random((4, 48, 30)) > rng.random((4, 1, 30)) ** 0.2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy's "All-NaN slice" on an offset with no valid sample
+        expected = np.nan_to_num(np.nanpercentile(np.where(valid, values, np.nan), 60, axis=1), nan=-np.inf)
+    got = _percentile_over_samples(values, valid, 60.0)
+    some = valid.any(axis=1)
+    assert some.any() and (~some).any() and (valid.sum(axis=1) == 1).any()
+    assert np.allclose(got[some], expected[some]) and np.isneginf(got[~some]).all()
+
+
+def test_a_tag_whose_edge_runs_just_inside_the_frames_edge_is_placed_by_its_square():
+    """Twin seed 5026's first frame (the surgeon's markers) has marker 0's tag with its bottom edge along the frame's
+    bottom: its corner 3 lies 6 px below the frame, corner 2 8 px above it, so no profile across that edge lies wholly
+    in the frame. ArUco needs the whole border. The edge's steps are taken where the step and the levels either side
+    are in the frame (a fifth of the edge); with the three other edges they place the tag's square within a tenth of
+    a pixel. Without them the three edges alone state its corners too loosely to be taken."""
+    from drillnav.registration.tag_recovery import border_steps
+
+    seed, marker = 5026, 0
+    scene = make_scene(seed=seed, render=False, degradations=Degradations(surgeon_markers=True))
+    pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
+    image = scene.render_camera(np.random.default_rng([seed, 3]), carm_from_drill=pose)
+    cam = scene.true_camera
+    truth = cam.project(apply(scene.camera_from_marker(pose)[marker], scene.manufactured[marker].tag_corners_mm()))
+    below = truth[:, 1] - (cam.height - 1)
+    assert below[3] > 3.0 and -10.0 < below[2] < -5.0 and (below[:2] < -50.0).all()
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    video = locator.locate(image)
+    assert marker not in video.by_id()
+    gray = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
+    predicted = _predicted(scene, pose, marker)
+    steps = border_steps(gray, predicted, tolerance_px=8.0, samples=48, step_px=0.5, min_contrast=30.0, partial=True, allow_one_missing=True)
+    assert not isinstance(steps, str), steps
+    assert 0.1 <= steps.fraction[2] < 0.5 and (steps.fraction[[0, 1, 3]] >= 0.8).all()
+    found = locator.recover(image, video, {marker: predicted}).by_id()[marker]
+    err = np.linalg.norm(found.corners_px - truth, axis=1)
+    print(f"tag along the frame's bottom: corners {np.round(err, 3)} px from the truth")
+    assert found.recovered and err.max() <= 0.1
+    # The three other edges alone do not place it.
+    blind = replace(steps, kept=steps.kept & (np.arange(4) != 2)[:, None])
+    assert locator._square_fit(blind, spec=locator._specs["DICT_6X6_250"][scene.marker_set.by_id(marker).aruco_id], predicted_px=predicted) is None
+
+
 def test_a_tag_cut_by_the_frames_edge_is_recovered_on_what_is_in_the_frame():
     """Markers placed as a surgeon places them spread wider than the camera's field: twin seed 5005's second frame
     has marker 31's tag 90 % in the frame, one corner outside. ArUco needs the whole border; the recovery fits
