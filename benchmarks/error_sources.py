@@ -12,6 +12,8 @@ and the pose part is measured again with the registration's inputs replaced by t
 time and then together (a diagnostic re-scoring, not something the product can do):
 
 ``corners``   the tags the product used, at their true corners (the true camera's projection of the printed tag);
+``unscaled``  the detected corners less the offset along each tag's radii that the frame's tags share (measured
+              against the truth: an exposure step or an over-exposed, blurred base moves every edge of a frame in);
 ``bbs``       every identified BB at the true projection of the as-built BB (the same correspondences);
 ``camera``    the true camera intrinsics and distortion instead of camera.json's;
 ``inputs``    all three;
@@ -50,7 +52,7 @@ from drillnav.registration.markers import MarkerSet
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 
-SETTINGS = ("product", "measured", "corners", "bbs", "camera", "inputs", "as_built", "all")
+SETTINGS = ("product", "measured", "corners", "unscaled", "bbs", "camera", "inputs", "as_built", "all")
 REFERENCE_TWO_VIEW_MM = 0.9
 
 
@@ -91,6 +93,11 @@ def scene_rows(scene, dets: dict, frames: list, views: list[str]) -> list[dict]:
             continue
         truth = _true_corners(scene, pose) | _true_corners(scene, pose, partly=True)
         true_video = replace(video, markers=tuple(replace(m, corners_px=truth[m.marker_id]) for m in video.markers if m.marker_id in truth))
+        radial = {i: (c - c.mean(axis=0)) / np.linalg.norm(c - c.mean(axis=0), axis=1)[:, None] for i, c in truth.items()}
+        seen_true = [m for m in video.markers if m.marker_id in truth]
+        shared = float(np.mean([np.sum((m.corners_px - truth[m.marker_id]) * radial[m.marker_id], axis=1).mean() for m in seen_true])) if seen_true else 0.0
+        unscaled = replace(video, markers=tuple(replace(m, corners_px=m.corners_px - shared * radial[m.marker_id]) if m.marker_id in truth else m
+                                                for m in video.markers))
         at_entry = true_axis.transformed(pose).closest_point(entry)
 
         def pose_part(carm_from_drill) -> float:
@@ -100,6 +107,7 @@ def scene_rows(scene, dets: dict, frames: list, views: list[str]) -> list[dict]:
                "calibration": float(np.linalg.norm(scene.calibrated_axis_drill.transformed(pose).closest_point(entry) - at_entry)),
                "total": float(np.linalg.norm(scene.calibrated_axis_drill.transformed(reg.carm_from_drill).closest_point(entry) - at_entry))}
         for name, v, m, ms, cam in (("measured", video, measured, built_set, scene.calibrated_camera),
+                                    ("unscaled", unscaled, marker_poses, scene.marker_set, scene.calibrated_camera),
                                     ("corners", true_video, marker_poses, scene.marker_set, scene.calibrated_camera),
                                     ("bbs", video, true_bbs, scene.marker_set, scene.calibrated_camera),
                                     ("camera", video, marker_poses, scene.marker_set, scene.true_camera),
