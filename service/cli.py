@@ -31,7 +31,7 @@ __all__ = ["main", "build_parser", "CliError"]
 
 # Each command -> (module under drillnav.service whose ``register`` adds it, one-line help for ``drillnav --help``).
 COMMANDS: dict[str, tuple[str, str]] = {
-    "markers": ("cli_markers", "the multimodal marker set: export, printable sheets and jig, detection"),
+    "markers": ("cli_markers", "the multimodal marker set: export, printable sheets and jig, detection, measuring as built"),
     "sim": ("cli_sim", "the digital twin"),
     "register": ("cli_register", "register the drill axis to fluoroscopy from a camera frame and 1+ shots"),
     "calibrate": ("cli_calibrate", "camera and drill-axis calibration"),

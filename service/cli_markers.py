@@ -1,4 +1,5 @@
-"""``drillnav markers export|sheet``: the marker set as JSON, and printable sheets for making markers."""
+"""``drillnav markers export|sheet|jig``: the marker set as JSON, and printable sheets for making markers (``detect`` and
+``measure`` are in ``cli_detect`` and ``cli_measure``)."""
 
 from __future__ import annotations
 
@@ -158,5 +159,7 @@ def register(subparsers) -> None:
     j.add_argument("--paper", choices=("A4", "Letter"), default="A4")
     j.set_defaults(func=_jig)
     from .cli_detect import add_detect
+    from .cli_measure import add_measure
 
     add_detect(sub)
+    add_measure(sub)
