@@ -21,8 +21,11 @@ time and then together (a diagnostic re-scoring, not something the product can d
               axis) instead of markers.json's design;
 ``all``       and the views told they come from a flat panel (no intensifier distortion estimated).
 
-and one setting a site can have: ``measured``, the product's own detections and camera.json, with markers.json
-holding each marker's BBs as built (measured, e.g. in a CT of the marker) instead of the design.
+and two a site can come near: ``measured``, the product's own detections and camera.json, with markers.json holding
+each marker's BBs as built in the frame that best fits the design (what ``drillnav markers measure`` gives from
+shots of the markers from several angles: X-ray does not show the BBs' common rigid displacement against the paper
+tag), taken as perfectly measured (that command measures them to about 0.01 mm from six shots,
+``tests/test_marker_as_built.py``); and ``built_rigid``, the same with that rigid displacement too.
 
 What is left in ``all`` is the solve itself. Medians and 90th percentiles per setting, and per number of
 markers the registration used, beside the reference's two-view median (0.9 mm). Ends with one JSON line.
@@ -47,12 +50,13 @@ from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.horn import absolute_orientation
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.markers import MarkerSet
+from drillnav.registration.markers import BB, MarkerSet
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 
-SETTINGS = ("product", "measured", "corners", "unscaled", "bbs", "camera", "inputs", "as_built", "all")
+SETTINGS = ("product", "measured", "built_rigid", "corners", "unscaled", "bbs", "camera", "inputs", "as_built", "all")
 REFERENCE_TWO_VIEW_MM = 0.9
 
 
@@ -61,12 +65,20 @@ def _bb_rows(design: np.ndarray, used: np.ndarray) -> list[int]:
     return [int(np.argmin(np.linalg.norm(design - u, axis=1))) for u in used]
 
 
-def _with_truth(pose, scene, *, as_built: bool, flat: bool, detected: bool = False):
+def _built_in_design_frame(scene, marker_id: int):
+    """The marker as built, its BBs in the frame that best fits the design (their common rigid displacement taken out)."""
+    design = scene.marker_set.by_id(marker_id)
+    built = scene.manufactured[marker_id]
+    t = absolute_orientation(built.bb_centers_mm, design.bb_centers_mm).target_from_source
+    return replace(built, bbs=tuple(BB(center_mm=t[:3, :3] @ b.center_mm + t[:3, 3], diameter_mm=b.diameter_mm) for b in built.bbs))
+
+
+def _with_truth(pose, scene, *, as_built: bool, flat: bool, detected: bool = False, design_frame: bool = False):
     """A marker pose whose BB observations are the true projections of the as-built BBs (``detected``: the detected
-    centres kept), and, ``as_built``, whose model BBs are the as-built ones; ``flat``, whose views state no
-    intensifier distortion."""
+    centres kept), and, ``as_built``, whose model BBs are the as-built ones (``design_frame``: in the frame that best
+    fits the design); ``flat``, whose views state no intensifier distortion."""
     design = scene.marker_set.by_id(pose.marker_id).bb_centers_mm
-    built = scene.manufactured[pose.marker_id].bb_centers_mm
+    built = (_built_in_design_frame(scene, pose.marker_id) if design_frame else scene.manufactured[pose.marker_id]).bb_centers_mm
     obs = []
     for view, model, centres in pose.observations:
         rows = _bb_rows(design, model)
@@ -81,8 +93,10 @@ def scene_rows(scene, dets: dict, frames: list, views: list[str]) -> list[dict]:
     true_bbs = tuple(_with_truth(p, scene, as_built=False, flat=False) for p in marker_poses)
     built_bbs = tuple(_with_truth(p, scene, as_built=True, flat=False) for p in marker_poses)
     built_flat = tuple(_with_truth(p, scene, as_built=True, flat=True) for p in marker_poses)
-    measured = tuple(_with_truth(p, scene, as_built=True, flat=False, detected=True) for p in marker_poses)
+    built_rigid = tuple(_with_truth(p, scene, as_built=True, flat=False, detected=True) for p in marker_poses)
+    measured = tuple(_with_truth(p, scene, as_built=True, flat=False, detected=True, design_frame=True) for p in marker_poses)
     built_set = MarkerSet(markers=tuple(scene.manufactured[m.marker_id] for m in scene.marker_set.markers))
+    measured_set = MarkerSet(markers=tuple(_built_in_design_frame(scene, m.marker_id) for m in scene.marker_set.markers))
     entry = scene.corridor_entry_carm_mm
     true_axis = TRUE_DRILL_AXIS_CAMERA
     rows = []
@@ -106,7 +120,8 @@ def scene_rows(scene, dets: dict, frames: list, views: list[str]) -> list[dict]:
         row = {"used": len(reg.used_ids), "views": len(views), "product": pose_part(reg.carm_from_drill),
                "calibration": float(np.linalg.norm(scene.calibrated_axis_drill.transformed(pose).closest_point(entry) - at_entry)),
                "total": float(np.linalg.norm(scene.calibrated_axis_drill.transformed(reg.carm_from_drill).closest_point(entry) - at_entry))}
-        for name, v, m, ms, cam in (("measured", video, measured, built_set, scene.calibrated_camera),
+        for name, v, m, ms, cam in (("measured", video, measured, measured_set, scene.calibrated_camera),
+                                    ("built_rigid", video, built_rigid, built_set, scene.calibrated_camera),
                                     ("unscaled", unscaled, marker_poses, scene.marker_set, scene.calibrated_camera),
                                     ("corners", true_video, marker_poses, scene.marker_set, scene.calibrated_camera),
                                     ("bbs", video, true_bbs, scene.marker_set, scene.calibrated_camera),
