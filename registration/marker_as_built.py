@@ -75,7 +75,7 @@ def measure_as_built(pose: MarkerPose, design: MarkerDesign, *, tolerance_mm: fl
     bad = [i for i, (view, _, _) in enumerate(obs) if view.distortion_sigma_px > 0]
     if bad:
         raise DegenerateInput(f"marker {pose.marker_id}: view(s) {bad} come from an image intensifier with uncorrected distortion, "
-                                 "which the fit would take for the BBs' offsets; dewarp them first")
+                              "which the fit would take for the BBs' offsets; dewarp them first")
     plan = np.asarray(design.bb_centers_mm, dtype=np.float64)                           # (n, 3)
     n = len(plan)
     rows, img, proj = [], [], []
