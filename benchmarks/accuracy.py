@@ -114,13 +114,15 @@ class _Shots:
 
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
-        diagnose: list | None = None, recover: bool = True) -> dict:
+        diagnose: list | None = None, recover: bool = True, measured_markers: bool = False) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
     ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
     (its error, 90 % bounds, reliable, and the number of markers used).
     ``recover``: as the product runs, tags the camera missed are recovered where the frame's registration predicts
     them before each registration (False: the detector's tags alone, for comparison).
+    ``measured_markers``: the product is handed the markers as ``drillnav markers measure`` writes them (the BBs as
+    built, in the frame that best fits the design: :meth:`Scene.measured_marker_set`) instead of their design.
     """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
@@ -133,6 +135,8 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
         rng = np.random.default_rng(seed)
         for k, (pair, views) in enumerate(_pairs(rng).items()):
             scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None)
+            if measured_markers:
+                scene = replace(scene, marker_set=scene.measured_marker_set())
             names = list(scene.views)
             if (seed, pair, fluoro_key) not in shots.fluoro:
                 image_rng = np.random.default_rng([seed, k, 1])
@@ -527,6 +531,8 @@ def main() -> None:
     ap.add_argument("--save", type=Path, help="also pickle the raw results here (to re-plot without re-running; with --diagnose, "
                     "every joint registration and refusal by seed, pair and views, to compare two runs one by one)")
     ap.add_argument("--ms", type=int, nargs="+", default=[3, 4, 5], help="numbers of markers M to study (default 3 4 5)")
+    ap.add_argument("--measured-markers", action="store_true", help="hand the product the markers as `drillnav markers measure` writes "
+                    "them (BBs as built, taken as perfectly measured) instead of markers.json's design")
     ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
                     "registration's prediction (the product before it; for comparison)")
     args = ap.parse_args()
@@ -547,7 +553,7 @@ def main() -> None:
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
     result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
-                 recover=not args.no_recover)
+                 recover=not args.no_recover, measured_markers=args.measured_markers)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)
@@ -559,7 +565,8 @@ def main() -> None:
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
     if not args.no_docs and not args.quick:
-        command = f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
+        command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
+                   + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
     figs = []
     for s in summary:
@@ -576,7 +583,8 @@ def main() -> None:
     for s in per_deg or []:
         if s["n"]:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
-    report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), summary=summary, per_degradation=per_deg)
+    report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers, summary=summary,
+           per_degradation=per_deg)
 
 
 if __name__ == "__main__":

@@ -50,9 +50,8 @@ from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
-from drillnav.registration.horn import absolute_orientation
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.markers import BB, MarkerSet
+from drillnav.registration.markers import MarkerSet
 from drillnav.registration.transforms import apply
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 
@@ -65,20 +64,12 @@ def _bb_rows(design: np.ndarray, used: np.ndarray) -> list[int]:
     return [int(np.argmin(np.linalg.norm(design - u, axis=1))) for u in used]
 
 
-def _built_in_design_frame(scene, marker_id: int):
-    """The marker as built, its BBs in the frame that best fits the design (their common rigid displacement taken out)."""
-    design = scene.marker_set.by_id(marker_id)
-    built = scene.manufactured[marker_id]
-    t = absolute_orientation(built.bb_centers_mm, design.bb_centers_mm).target_from_source
-    return replace(built, bbs=tuple(BB(center_mm=t[:3, :3] @ b.center_mm + t[:3, 3], diameter_mm=b.diameter_mm) for b in built.bbs))
-
-
 def _with_truth(pose, scene, *, as_built: bool, flat: bool, detected: bool = False, design_frame: bool = False):
     """A marker pose whose BB observations are the true projections of the as-built BBs (``detected``: the detected
     centres kept), and, ``as_built``, whose model BBs are the as-built ones (``design_frame``: in the frame that best
     fits the design); ``flat``, whose views state no intensifier distortion."""
     design = scene.marker_set.by_id(pose.marker_id).bb_centers_mm
-    built = (_built_in_design_frame(scene, pose.marker_id) if design_frame else scene.manufactured[pose.marker_id]).bb_centers_mm
+    built = (scene.measured_marker_set().by_id(pose.marker_id) if design_frame else scene.manufactured[pose.marker_id]).bb_centers_mm
     obs = []
     for view, model, centres in pose.observations:
         rows = _bb_rows(design, model)
@@ -96,7 +87,7 @@ def scene_rows(scene, dets: dict, frames: list, views: list[str]) -> list[dict]:
     built_rigid = tuple(_with_truth(p, scene, as_built=True, flat=False, detected=True) for p in marker_poses)
     measured = tuple(_with_truth(p, scene, as_built=True, flat=False, detected=True, design_frame=True) for p in marker_poses)
     built_set = MarkerSet(markers=tuple(scene.manufactured[m.marker_id] for m in scene.marker_set.markers))
-    measured_set = MarkerSet(markers=tuple(_built_in_design_frame(scene, m.marker_id) for m in scene.marker_set.markers))
+    measured_set = scene.measured_marker_set()
     entry = scene.corridor_entry_carm_mm
     true_axis = TRUE_DRILL_AXIS_CAMERA
     rows = []

@@ -11,7 +11,7 @@ tip rests on the bone at the entry when the shot is taken.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -23,7 +23,8 @@ from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY
 from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
 from drillnav.registration.line import Line3D
-from drillnav.registration.markers import MarkerDesign, MarkerSet, default_marker_set
+from drillnav.registration.horn import absolute_orientation
+from drillnav.registration.markers import BB, MarkerDesign, MarkerSet, default_marker_set
 from drillnav.registration.transforms import apply, from_rotvec, invert, make_transform
 
 from . import anatomy
@@ -96,6 +97,17 @@ class Scene:
     table_y_mm: tuple[float, float] = TABLE_Y_MM
     degradations: Degradations = field(default_factory=Degradations)  # what the operating room adds (default: none)
     hardware: Hardware = ()                    # surgical metal in the field (frame C), with ``degradations.hardware``
+
+    def measured_marker_set(self) -> MarkerSet:
+        """The marker set a site writes with ``drillnav markers measure``, taken as perfectly measured: each marker as
+        built, its BBs in the frame that best fits the design (X-ray does not show their common rigid displacement
+        against the paper tag, which stays at the design's place)."""
+        measured = []
+        for design in self.marker_set.markers:
+            built = self.manufactured[design.marker_id]
+            fit = absolute_orientation(built.bb_centers_mm, design.bb_centers_mm).target_from_source
+            measured.append(replace(built, bbs=tuple(BB(center_mm=fit[:3, :3] @ b.center_mm + fit[:3, 3], diameter_mm=b.diameter_mm) for b in built.bbs)))
+        return MarkerSet(markers=tuple(measured))
 
     def kwire_carm(self, carm_from_drill: NDArray[np.float64] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
         """The K-wire as (chuck end, tip) in C (mm), its tip at the true axis's point nearest the corridor entry."""
