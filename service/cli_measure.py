@@ -17,7 +17,7 @@ from .outputs import check_output_path
 __all__ = ["add_measure"]
 
 # A marker whose BBs fit their views worse than this (RMS px) moved between the shots, or a BB was matched wrongly:
-# it is not written.
+# it is not measured, and keeps its design in the markers.json written.
 MAX_RESIDUAL_PX = 1.5
 
 
