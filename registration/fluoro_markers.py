@@ -45,6 +45,9 @@ class DetectedMarker:
     ring_ellipse: tuple
     mirrored: bool
     identification_cost_mm: float
+    # (N,) the same marker's other assignment of these BBs that matched nearly as well
+    # (:attr:`.markers.Identification.alternative_bb_index`; None: the assignment is unambiguous).
+    alternative_bb_index: NDArray[np.int64] | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -359,7 +362,8 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
 
 def _detected(ident, centers, diam_px, diam_mm, ellipse) -> DetectedMarker:
     bbs = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=bool(dm > 2.75)) for c, d, dm in zip(centers, diam_px, diam_mm))
-    return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost)
+    return DetectedMarker(marker_id=ident.marker_id, bbs=bbs, bb_index=ident.bb_index, ring_ellipse=ellipse, mirrored=ident.mirrored, identification_cost_mm=ident.cost,
+                          alternative_bb_index=ident.alternative_bb_index)
 
 
 def _loose(plane, diam_px, centers, ellipse, marker_set: MarkerSet) -> tuple[DetectedMarker, ...]:

@@ -9,6 +9,12 @@ apart by about twice the tilt). Each candidate is refined by Levenberg-Marquardt
 over every BB in every view; the best fit wins, and the runner-up is kept as
 ``mirror_carm_from_marker`` when it fits nearly as well, so that the camera's
 view of the tag can choose later (:mod:`drillnav.registration.joint_solve`).
+A view whose BBs the marker's pattern pairs two ways nearly as well
+(:attr:`.markers.Identification.alternative_bb_index`: a subset of the pattern
+symmetric about a line, seen nearly edge-on) is solved with each pairing too.
+When the two pairings' poses fit about as well (turned over about that line of
+symmetry), the other is kept as the mirror, and the observations keep only the
+BBs both pairings agree on, which fit either.
 Each pose gets a residual (RMS px) and a convergence flag.
 """
 
@@ -44,6 +50,12 @@ class MarkerPose:
     mirror_carm_from_marker: NDArray[np.float64] | None = None
     # (view, design BB centres (N, 3) mm, detected centres (N, 2) px) per view: the joint solve re-uses them.
     observations: tuple = ()
+    # Further poses (4, 4) that fit within MIRROR_RATIO, where a view's BBs pair with the design two ways: the
+    # pairings' poses and their mirrors, for the camera's view of the tag to choose among (:attr:`solutions`).
+    further_solutions: tuple = ()
+    # Per solution of :attr:`solutions`, the observations that solution's pairing makes (all of its BBs), where a
+    # view's BBs pair two ways; () otherwise. ``observations`` then holds only the BBs every pairing agrees on.
+    solution_observations: tuple = ()
     # (view, blob centres (N, 2) px) per view register_markers was given: the blobs no identified marker
     # claimed there. A marker the camera sees but fluoroscopy did not identify (edge-on, ambiguous ring)
     # claims its BBs among them by projection (:mod:`.video_claims`).
@@ -61,6 +73,12 @@ class MarkerPose:
     def position_carm_mm(self) -> NDArray[np.float64]:
         """X_C: the central BB in frame C."""
         return self.carm_from_marker[:3, 3].copy()
+
+    @property
+    def solutions(self) -> tuple[NDArray[np.float64], ...]:
+        """Every pose (4, 4) fluoroscopy leaves open, best first: the pose, its mirror, the further solutions."""
+        mirror = () if self.mirror_carm_from_marker is None else (self.mirror_carm_from_marker,)
+        return (self.carm_from_marker, *mirror, *self.further_solutions)
 
 
 # A mirror solution whose RMS residual is within this factor of the best is kept as an alternative:
@@ -120,37 +138,95 @@ def _distinct(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
     return float(a[:3, 2] @ b[:3, 2]) < np.cos(np.radians(1.0)) or float(np.linalg.norm(a[:3, 3] - b[:3, 3])) > 0.5
 
 
-def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float) -> MarkerPose:
-    # Both planar solutions of the view with the most BBs (IPPE needs 4; a view with 3 claimed BBs only
-    # joins the refinement): refined over every view, the wrong mirror no longer fits the others.
-    starts: list[NDArray[np.float64]] = []
+def _planar_starts(observations) -> list[NDArray[np.float64]]:
+    """Both planar solutions of the view with the most BBs that gives them (IPPE needs 4; a view with 3 claimed BBs
+    only joins the refinement); [] when none does (every view's BBs nearly collinear: edge-on)."""
     for view, obj, img in sorted(observations, key=lambda o: -len(o[1])):
         if len(obj) < 4:
             break
         try:
-            starts = planar_candidates(view, obj, img)
-            break
+            return planar_candidates(view, obj, img)
         except (ValueError, cv2.error):  # BBs nearly collinear (edge-on): try the next view
             continue
-    if not starts:
+    return []
+
+
+def _agreed(a: tuple, b: tuple) -> tuple:
+    """Per view of ``a``, the (view, design centres, detected centres) that pairings ``a`` and ``b`` both make (a
+    view where they make none, or that ``b`` lacks, left out)."""
+    out = []
+    for view, obj_a, img_a in a:
+        other = next(((o, i) for v, o, i in b if v is view), None)
+        if other is None:
+            continue
+        obj_b, img_b = other
+        keep = [k for k in range(len(obj_a))
+                if any(np.allclose(img_a[k], img_b[j]) and np.allclose(obj_a[k], obj_b[j]) for j in range(len(obj_b)))]
+        if keep:
+            out.append((view, obj_a[keep], img_a[keep]))
+    return tuple(out)
+
+
+def _open(fits: list) -> MarkerPose | None:
+    """The pose of the best of ``fits`` ([MarkerPose] of one marker, each on its own pairing of the BBs, best first),
+    with the others that fit nearly as well on as many BBs left open as its solutions (:attr:`MarkerPose.solutions`,
+    each with its pairing's observations); None when ``fits`` is empty."""
+    if not fits:
+        return None
+    best = fits[0]
+    rivals = [f for f in fits[1:] if f.n_points == best.n_points and f.residual_px <= MIRROR_RATIO * max(best.residual_px, 0.1)
+              and _distinct(f.carm_from_marker, best.carm_from_marker)]
+    if not rivals:
+        return best
+    agreed = _agreed(best.observations, rivals[0].observations)
+    return replace(best, mirror_carm_from_marker=rivals[0].carm_from_marker, further_solutions=tuple(f.carm_from_marker for f in rivals[1:]),
+                   solution_observations=(best.observations, *(f.observations for f in rivals)), observations=agreed,
+                   n_views=len(agreed), n_points=sum(len(o[1]) for o in agreed))
+
+
+def _solve_one(marker_id: int, observations: list[tuple[CArmView, NDArray[np.float64], NDArray[np.float64]]], max_residual_px: float,
+               alternatives: list | tuple = ()) -> MarkerPose:
+    """``alternatives``: per view of ``observations``, that view's BBs paired with the design the other way (None:
+    paired one way only); each is tried in place of its view's observations, one view at a time."""
+    variants = [tuple(observations)]
+    for j, alt in enumerate(alternatives):
+        if alt is not None:
+            variants.append(tuple(alt if k == j else o for k, o in enumerate(observations)))
+    # Both planar solutions of each pairing, refined over every view: the wrong mirror no longer fits the others.
+    fits = sorted(((*_refine(obs, c), obs) for obs in variants for c in _planar_starts(obs)), key=lambda f: f[1])
+    if not fits:
         raise ValueError(f"marker {marker_id}: no view's BBs give a planar pose (IPPE failed)")
-    fits = sorted((_refine(observations, c) for c in starts), key=lambda f: f[1])
-    pose, rms, success = fits[0]
-    mirror = next((f[0] for f in fits[1:] if _distinct(f[0], pose) and f[1] <= MIRROR_RATIO * max(rms, 0.1)), None)
-    n_points = sum(len(o[1]) for o in observations)
+    pose, rms, success, obs = fits[0]
+    near = [f for f in fits[1:] if _distinct(f[0], pose) and f[1] <= MIRROR_RATIO * max(rms, 0.1)]
+    turned = next((f for f in near if f[3] is not obs), None)
+    further: tuple = ()
+    if turned is not None:
+        # The other pairing fits about as well: the pose turned over about the pattern's line of symmetry. Every
+        # solution that fits nearly as well stays open for the camera's view of the tag to settle, and only the
+        # BBs both pairings agree on stay observed (they fit either).
+        kept: list = []
+        for f in near:
+            if all(_distinct(f[0], k[0]) for k in kept):
+                kept.append(f)
+        mirror, further = kept[0][0], tuple(f[0] for f in kept[1:])
+        paired, obs = (obs, *(f[3] for f in kept)), _agreed(obs, turned[3])
+    else:
+        mirror, paired = next((f[0] for f in near), None), ()
     return MarkerPose(
         marker_id=marker_id,
         carm_from_marker=pose,
         residual_px=rms,
-        n_views=len(observations),
-        n_points=n_points,
+        n_views=len(obs),
+        n_points=sum(len(o[1]) for o in obs),
         converged=bool(success and rms <= max_residual_px),
         mirror_carm_from_marker=mirror,
-        observations=tuple(observations),
+        further_solutions=further,
+        solution_observations=paired,
+        observations=tuple(obs),
     )
 
 
-def _try_solve(marker_id: int, observations, max_residual_px: float) -> MarkerPose | None:
+def _try_solve(marker_id: int, observations, max_residual_px: float, alternatives: list | None = None) -> MarkerPose | None:
     """A marker whose BBs give no planar pose in any view (nearly collinear) is left out, not fatal to the others.
 
     Solved over all the views that identified it; when that does not converge and exactly one view alone does,
@@ -158,20 +234,32 @@ def _try_solve(marker_id: int, observations, max_residual_px: float) -> MarkerPo
     metal) and must not leave the marker without a pose. When several views converge alone but not together,
     nothing tells which is right (each has its mirror), and the joint result stands, not converged.
     """
+    alternatives = alternatives or [None] * len(observations)
     try:
-        pose = _solve_one(marker_id, observations, max_residual_px)
+        pose = _solve_one(marker_id, observations, max_residual_px, alternatives)
     except ValueError:
         pose = None
     if (pose is not None and pose.converged) or len(observations) < 2:
         return pose
     alone = []
-    for obs in observations:
+    for obs, alt in zip(observations, alternatives):
         try:
-            alone.append(_solve_one(marker_id, [obs], max_residual_px))
+            alone.append(_solve_one(marker_id, [obs], max_residual_px, [alt]))
         except ValueError:
             continue
     good = [p for p in alone if p.converged]
     return good[0] if len(good) == 1 else pose
+
+
+def _paired(view: CArmView, marker, bb_index: NDArray[np.int64], marker_set: MarkerSet):
+    """(view, design BB centres (N, 3) mm, detected centres (N, 2) px) of ``marker``'s BBs (a
+    :class:`.fluoro_markers.DetectedMarker`) paired with the design by ``bb_index`` (N,); None under 4 paired."""
+    ok = bb_index >= 0
+    if ok.sum() < 4:
+        return None
+    obj = marker_set.by_id(marker.marker_id).bb_centers_mm[bb_index[ok]]
+    img = np.array([b.center_px for b, keep in zip(marker.bbs, ok) if keep])
+    return view, obj, img
 
 
 def register_markers(
@@ -189,27 +277,27 @@ def register_markers(
     if len(detections) != len(views):
         raise ValueError(f"{len(detections)} detection sets for {len(views)} views")
     per_marker: dict[int, list] = {}
+    alternatives: dict[int, list] = {}
     for det, view in zip(detections, views):
         for m in det.markers:
-            design = marker_set.by_id(m.marker_id)
-            ok = m.bb_index >= 0
-            if ok.sum() < 4:
+            found = _paired(view, m, m.bb_index, marker_set)
+            if found is None:
                 continue
-            obj = design.bb_centers_mm[m.bb_index[ok]]
-            img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
-            per_marker.setdefault(m.marker_id, []).append((view, obj, img))
+            per_marker.setdefault(m.marker_id, []).append(found)
+            alternatives.setdefault(m.marker_id, []).append(None if m.alternative_bb_index is None else _paired(view, m, m.alternative_bb_index, marker_set))
     # Rings whose pattern matched a marker only at the looser cost, that marker identified in no view: posed too,
     # marked as needing the camera's corroboration.
     identified = set(per_marker) | {m.marker_id for det in detections for m in det.markers}
     per_candidate: dict[int, list] = {}
+    candidate_alternatives: dict[int, list] = {}
     for det, view in zip(detections, views):
         for m in det.candidates():
-            ok = m.bb_index >= 0
-            if m.marker_id in identified or ok.sum() < 4:
+            found = None if m.marker_id in identified else _paired(view, m, m.bb_index, marker_set)
+            if found is None:
                 continue
-            obj = marker_set.by_id(m.marker_id).bb_centers_mm[m.bb_index[ok]]
-            img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
-            per_candidate.setdefault(m.marker_id, []).append((view, obj, img))
+            per_candidate.setdefault(m.marker_id, []).append(found)
+            candidate_alternatives.setdefault(m.marker_id, []).append(
+                None if m.alternative_bb_index is None else _paired(view, m, m.alternative_bb_index, marker_set))
     # Rings that identified no marker, matched against each marker alone (identified in no view, no candidate): per
     # marker the ring it matches best, posed as a hypothesis for the camera's constellation to settle.
     per_loose: dict[int, tuple] = {}
@@ -225,8 +313,10 @@ def register_markers(
                 if m.marker_id not in per_loose or key < per_loose[m.marker_id][0]:
                     per_loose[m.marker_id] = (key, [(view, obj, img)])
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_marker.items())) if p is not None]
-        poses += [replace(p, needs_camera=True) for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px), sorted(per_candidate.items()))
+        poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px, alternatives[item[0]]), sorted(per_marker.items()))
+                 if p is not None]
+        poses += [replace(p, needs_camera=True)
+                  for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px, candidate_alternatives[item[0]]), sorted(per_candidate.items()))
                   if p is not None]
         poses += [replace(p, needs_camera=True, loose=True) for p in pool.map(lambda item: _try_solve(item[0], item[1][1], max_residual_px), sorted(per_loose.items()))
                   if p is not None and p.converged]
@@ -246,34 +336,52 @@ def register_markers(
         if pose.loose:  # a hypothesis: it claims nothing in the other views before the camera bears it out
             out.append(replace(pose, view_blobs=view_blobs))
             continue
-        seen = {id(o[0]) for o in pose.observations}
-        extra = []
         design = marker_set.by_id(pose.marker_id).bb_centers_mm
-        # Posed in one view, the marker's depth along that view's beam is poorly fixed (4-7 BBs in low dose: 5-12 mm),
-        # which slides its pattern in another view along that beam's image; and both planar solutions stay open.
-        source = pose.observations[0][0] if len(seen) == 1 else None
-        for k, (det, view) in enumerate(zip(detections, views)):
-            if id(view) in seen or not len(free[k]):
-                continue
-            found = claim_bbs(view, pose.carm_from_marker, design, free[k])
-            if found is None and source is not None:
-                for start in (pose.carm_from_marker, pose.mirror_carm_from_marker):
-                    if start is not None:
-                        found = claim_bbs(view, start, design, free[k], search_px=CROSS_VIEW_ACROSS_PX, tol_px=CROSS_VIEW_SLID_TOL_PX, min_bbs=CROSS_VIEW_SLID_MIN_BBS,
-                                          slide_px=beam_image_px(view, source, start[:3, 3], CROSS_VIEW_SLIDE_MM))
-                        if found is not None:
-                            break
-            if found is not None:
-                extra.append((view, *found))
-        if extra:
-            try:
-                again = _solve_one(pose.marker_id, list(pose.observations) + extra, max_residual_px)
-            except ValueError:
-                again = pose
-            if again.converged or not pose.converged:
+        claim = dict(views=views, free=free, design=design, max_residual_px=max_residual_px)
+        if pose.solution_observations:
+            # Its BBs pair two ways: each solution claims in the other views with the BBs its own pairing makes. The
+            # right one also finds the BBs the symmetric part lacks; where both find as many, both stay open.
+            tries = [_claimed_elsewhere(pose.marker_id, start, obs, (start,), **claim) for start, obs in zip(pose.solutions, pose.solution_observations)]
+            tries = sorted((t for t in tries if t is not None and t.converged), key=lambda t: (-t.n_points, t.residual_px))
+            pose = _open(tries) or pose
+        else:
+            again = _claimed_elsewhere(pose.marker_id, pose.carm_from_marker, pose.observations, pose.solutions, **claim)
+            if again is not None and (again.converged or not pose.converged):
                 pose = again
         out.append(replace(pose, view_blobs=view_blobs))
     return tuple(out)
+
+
+def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations: tuple, slide_starts, *, views, free, design,
+                       max_residual_px: float) -> MarkerPose | None:
+    """The marker solved again over ``observations`` and the BBs it claims among the ``free`` blobs of the views
+    they lack, by projection from ``start`` (4, 4); None when it claims none.
+
+    Posed in one view, the marker's depth along that view's beam is poorly fixed (4-7 BBs in low dose: 5-12 mm), which
+    slides its pattern in another view along that beam's image; and both planar solutions stay open: each of
+    ``slide_starts`` then also claims sliding along it.
+    """
+    seen = {id(o[0]) for o in observations}
+    source = observations[0][0] if len(seen) == 1 else None
+    extra = []
+    for k, view in enumerate(views):
+        if id(view) in seen or not len(free[k]):
+            continue
+        found = claim_bbs(view, start, design, free[k])
+        if found is None and source is not None:
+            for s in slide_starts:
+                found = claim_bbs(view, s, design, free[k], search_px=CROSS_VIEW_ACROSS_PX, tol_px=CROSS_VIEW_SLID_TOL_PX, min_bbs=CROSS_VIEW_SLID_MIN_BBS,
+                                  slide_px=beam_image_px(view, source, s[:3, 3], CROSS_VIEW_SLIDE_MM))
+                if found is not None:
+                    break
+        if found is not None:
+            extra.append((view, *found))
+    if not extra:
+        return None
+    try:
+        return _solve_one(marker_id, list(observations) + extra, max_residual_px)
+    except ValueError:
+        return None
 
 
 # A marker posed in one view claims its BBs in another view sliding along the image of the first view's beam,

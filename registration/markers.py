@@ -11,7 +11,9 @@ fluoroscopy feature extraction reject false candidates. Each grid site is
 empty, small (2.0 mm) or large (3.5 mm); the 48 codes are chosen so that any
 two differ in at least ``MIN_CODE_DISTANCE`` sites under every rotation of the
 grid and under mirroring, and no code is within that distance of its own
-rotations or mirror image (so the orientation is unambiguous too).
+rotations or mirror image (so the orientation is unambiguous too). That holds
+for the whole pattern: a part of it (BBs lost, a ring nearly edge-on) may pair
+with the design two ways, which :func:`identify` reports.
 """
 
 from __future__ import annotations
@@ -218,6 +220,12 @@ class Identification:
     bb_index : (N,) index into the design's ``bbs`` for each observed BB, -1 if unmatched.
     rotation_rad, mirrored : the in-plane rotation (after mirroring about x) taking design to observation.
     cost : mean alignment cost of the match; margin : runner-up cost minus cost.
+    alternative_bb_index : (N,) the same marker's next best assignment when it costs within
+        :data:`ASSIGNMENT_TIE_MM` of the best and pairs some BB with another design BB (None: none does). A part
+        of the pattern that a reflection about a line through its centre, or a half-turn about it, maps onto
+        itself (a marker seen nearly edge-on, BBs lost) matches that way as well: the two pairings' poses are a
+        half-turn apart (about that line, or about the normal), and only another view or the camera's view of
+        the tag tells which is right (:func:`.marker_pose.register_markers`).
     """
 
     marker_id: int
@@ -226,6 +234,13 @@ class Identification:
     bb_index: NDArray[np.int64]
     cost: float
     margin: float
+    alternative_bb_index: NDArray[np.int64] | None = None
+
+
+# A second assignment of the same marker's BBs whose cost is within this of the best (mm) is kept as an
+# alternative. The two pairings of a symmetric part of a pattern cost the same but for the noise (twin seed 7000,
+# marker 38 on five BBs in a lateral view: 0.0002 mm apart), so either may win.
+ASSIGNMENT_TIE_MM = 0.1
 
 
 def _match_costs(obs_xy, obs_large, design: MarkerDesign, angles, mirrored: bool, tol: float):
@@ -271,11 +286,12 @@ def identify(
     if obs.shape[0] < 3:
         raise MarkerNotIdentified(f"only {obs.shape[0]} BBs observed; at least 3 are needed to identify a marker")
     angles = np.radians(np.arange(0.0, 360.0, 1.0))
-    results = []
+    results, matches = [], {}
     for design in marker_set.markers:
         best = (np.inf, None, 0.0, False)
         for mirrored in (False, True):
             costs, idx = _match_costs(obs, large, design, angles, mirrored, tolerance_mm)
+            matches[design.marker_id, mirrored] = (costs, idx)
             k = int(np.argmin(costs))
             if costs[k] < best[0]:
                 best = (float(costs[k]), idx[k], float(angles[k]), mirrored)
@@ -287,4 +303,19 @@ def identify(
         raise MarkerNotIdentified(f"no marker matches the observed {len(obs)} BBs (best: marker {marker_id}, cost {cost:.2f} mm)")
     if margin < min_margin_mm:
         raise MarkerNotIdentified(f"ambiguous BB pattern: markers {marker_id} and {results[1][1]} match almost equally")
-    return Identification(marker_id=int(marker_id), rotation_rad=float(angle), mirrored=bool(mirrored), bb_index=idx.astype(np.int64), cost=float(cost), margin=float(margin))
+    return Identification(marker_id=int(marker_id), rotation_rad=float(angle), mirrored=bool(mirrored), bb_index=idx.astype(np.int64), cost=float(cost), margin=float(margin),
+                          alternative_bb_index=_alternative(idx, cost, [matches[marker_id, m] for m in (False, True)]))
+
+
+def _alternative(best_idx: NDArray[np.int64], best_cost: float, matches) -> NDArray[np.int64] | None:
+    """The cheapest assignment among ``matches`` ([(costs (A,), assignments (A, N))] per face) that pairs some BB
+    with another design BB than ``best_idx`` (N,) does (one only leaving a BB unpaired is the same pairing), when it
+    costs within ASSIGNMENT_TIE_MM of ``best_cost``; else None."""
+    alt, alt_cost = None, best_cost + ASSIGNMENT_TIE_MM
+    for costs, idx in matches:
+        differs = np.any((idx != best_idx[None]) & (idx >= 0) & (best_idx[None] >= 0), axis=1)
+        if np.any(differs):
+            k = int(np.flatnonzero(differs)[np.argmin(costs[differs])])
+            if costs[k] <= alt_cost:
+                alt, alt_cost = idx[k].astype(np.int64), float(costs[k])
+    return alt

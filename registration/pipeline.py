@@ -167,7 +167,8 @@ class JointRefinement:
 def _refined_poses(poses: tuple[MarkerPose, ...], reg: DrillRegistration) -> tuple[MarkerPose, ...]:
     """The markers the joint solve used, at its poses (mirror settled); the others as they were."""
     used = set(reg.used_ids)
-    return tuple(replace(p, carm_from_marker=reg.carm_from_marker[p.marker_id], mirror_carm_from_marker=None, converged=True)
+    return tuple(replace(p, carm_from_marker=reg.carm_from_marker[p.marker_id], mirror_carm_from_marker=None, further_solutions=(), solution_observations=(),
+                         converged=True)
                  if p.marker_id in used and p.marker_id in reg.carm_from_marker else p for p in poses)
 
 
@@ -247,8 +248,9 @@ def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator,
     """{marker id: (K, 4, 2) predicted tag corners, px}: the markers posed in fluoroscopy that ``video`` misses and
     whose tag the registration ``carm_from_drill`` (4, 4) puts mostly in the camera's frame.
 
-    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else its
-    fluoroscopy pose and mirror pose (K = 2 when fluoroscopy left it open).
+    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else every
+    solution fluoroscopy left open (:attr:`.MarkerPose.solutions`: K = 2 for a mirror, more for a BB pattern
+    paired two ways).
     """
     missing = {p.marker_id for p in _missing(video, poses, locator)}
     places = predict_tag_places(locator=locator, camera=camera, poses=tuple(p for p in poses if p.marker_id in missing), marker_set=marker_set,
@@ -267,15 +269,16 @@ def predict_tag_places(*, locator: VideoMarkerLocator, camera: PinholeCamera, po
     """{marker id: (K, 4, 2) px}: where the registration ``carm_from_drill`` (4, 4) puts the tag of every marker posed in
     fluoroscopy (converged) that the locator knows, in the frame or not; K = 0 when every candidate lies behind the camera.
 
-    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else its
-    fluoroscopy pose and mirror pose (K = 2 when fluoroscopy left it open).
+    Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else every
+    solution fluoroscopy left open (:attr:`.MarkerPose.solutions`: K = 2 for a mirror, more for a BB pattern
+    paired two ways).
     """
     refined = carm_from_marker or {}
     places = {}
     for p in poses:
         if not p.converged or p.marker_id not in locator.marker_ids:
             continue
-        starts = (refined[p.marker_id],) if p.marker_id in refined else (p.carm_from_marker, p.mirror_carm_from_marker)
+        starts = (refined[p.marker_id],) if p.marker_id in refined else p.solutions
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
                  for t in starts if t is not None]
         cands = [c for c in cands if c is not None]

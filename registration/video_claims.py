@@ -49,6 +49,14 @@ def drill_from_marker(camera_from_tag: NDArray[np.float64], tag_center_mm: NDArr
     return np.asarray(camera_from_tag, dtype=np.float64) @ make_transform(np.eye(3), -np.asarray(tag_center_mm, dtype=np.float64))
 
 
+def paired_anchors(anchors: dict[int, tuple], by_id: dict) -> list[dict[int, tuple]]:
+    """``anchors`` ({marker id: observations}) with each marker whose BBs pair two ways
+    (:attr:`.marker_pose.MarkerPose.solution_observations`, ``by_id``: {id: MarkerPose}) anchoring with each
+    pairing in turn, all its BBs; ``[anchors]`` when no marker's do."""
+    variants = [{**anchors, i: obs} for i in anchors for obs in by_id[i].solution_observations]
+    return variants or [anchors]
+
+
 def fit_constellation(anchors: dict[int, tuple], drill_from_marker_: dict[int, NDArray[np.float64]],
                       starts: list[NDArray[np.float64]]) -> tuple[NDArray[np.float64], float]:
     """``carm_from_drill`` (4, 4) and the RMS BB residual (px) of the camera's marker constellation fitted to fluoroscopy.
@@ -114,7 +122,7 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
             views.setdefault(id(view), (view, blobs))
     by_id = {p.marker_id: p for p in marker_poses}
     in_set = set(marker_set.ids)
-    anchors = {i: p.observations for i, p in by_id.items() if i in vids and p.observations}
+    anchors = {i: p.observations for i, p in by_id.items() if i in vids and (p.observations or p.solution_observations)}
     if not views or not anchors:
         return marker_poses
     d_from_m = {i: drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm) for i in vids if i in in_set}
@@ -124,15 +132,16 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     starts = []
     for i in anchors:
         p = by_id[i]
-        for carm_from_marker in (p.carm_from_marker, p.mirror_carm_from_marker):
-            if carm_from_marker is not None:
-                starts.append(carm_from_marker @ invert(d_from_m[i]))
+        for carm_from_marker in p.solutions:
+            starts.append(carm_from_marker @ invert(d_from_m[i]))
     # Anchors seen in one view fit the constellation and its mirror alike: the fit whose prediction the other
     # views' blobs bear out (most BBs claimed; the better fit on a tie) is taken.
     anchor_views = {id(o[0]): o[0] for obs in anchors.values() for o in obs}
     depth_view = next(iter(anchor_views.values())) if len(anchor_views) == 1 else None
     best = None
-    for carm_from_drill, rms in constellation_fits(anchors, d_from_m, starts):
+    # A marker whose BBs pair two ways anchors with each pairing: the camera's constellation fits the right one.
+    fits = sorted((f for a in paired_anchors(anchors, by_id) for f in constellation_fits(a, d_from_m, starts)), key=lambda f: f[1])
+    for carm_from_drill, rms in fits:
         if rms > max_fit_px:
             continue
         got = _claims(carm_from_drill, views=views, by_id=by_id, d_from_m=d_from_m, marker_set=marker_set, min_bbs=min_bbs, depth_view=depth_view)
@@ -147,7 +156,8 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     for p in marker_poses:
         extra = claims.pop(p.marker_id, [])
         out.append(replace(p, observations=tuple(p.observations) + tuple(extra), n_views=p.n_views + len(extra),
-                           n_points=p.n_points + sum(len(o[1]) for o in extra)) if extra else p)
+                           n_points=p.n_points + sum(len(o[1]) for o in extra),
+                           solution_observations=tuple(tuple(o) + tuple(extra) for o in p.solution_observations)) if extra else p)
     for i, extra in sorted(claims.items()):
         out.append(MarkerPose(marker_id=i, carm_from_marker=carm_from_drill @ d_from_m[i], residual_px=float("nan"),
                               n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,

@@ -22,7 +22,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -37,7 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
-from .video_claims import claim_from_video, corroborate_loose, drill_from_marker, fit_constellation
+from .video_claims import claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors
 from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -140,10 +140,9 @@ def register_video_to_fluoro(
     common = sorted(set(poses) & set(vids))
     # The joint solve also takes markers whose fluoroscopy-only pose did not converge (edge-on, few BBs, one
     # view): the camera fixes their orientation, so their BBs still count.
-    joinable = sorted(i for i in set(every) & set(vids) if every[i].observations) if joint else []
+    joinable = sorted(i for i in set(every) & set(vids) if every[i].observations or every[i].solution_observations) if joint else []
     available = joinable if joinable and len(joinable) >= len(common) else common
-    # A converged pose handed in without its BB observations was posed from at least 4 BBs.
-    bbs = sum(sum(len(o[1]) for o in every[i].observations) if every[i].observations else 4 for i in available)
+    bbs = sum(_bb_count(every[i]) for i in available)
     # One marker seen by the camera (its tag: a full pose in D) and posed in fluoroscopy fixes carm_from_drill;
     # below four BBs in all its pose in C is not determined (three give up to four P3P solutions).
     if len(available) < max(min_markers, 1) or bbs < 4:
@@ -170,7 +169,10 @@ def register_video_to_fluoro(
     else:
         # One or two markers: no point-based fit; each marker's pose in C composed with its pose in D.
         carm_from_drill_horn = _from_few_markers(used, vids, every, marker_set)
-    carm_from_marker = {i: _camera_side(every[i], carm_from_drill_horn @ vids[i].camera_from_tag) for i in set(used) | set(common) | set(joinable)}
+    carm_from_marker = {}
+    for i in set(used) | set(common) | set(joinable):
+        carm_from_marker[i], observations = _camera_side(every[i], carm_from_drill_horn @ vids[i].camera_from_tag)
+        every[i] = replace(every[i], observations=observations)
     # Joint PnP on all tag corners of the markers kept.
     obj, img = [], []
     for i in used:
@@ -223,6 +225,13 @@ def register_video_to_fluoro(
     )
 
 
+def _bb_count(pose: MarkerPose) -> int:
+    """The BBs ``pose`` was solved on: its observations, or the most any of its pairings makes where its BBs pair
+    two ways (:attr:`.MarkerPose.solution_observations`); 4 for a converged pose handed in without observations."""
+    sets = [pose.observations, *pose.solution_observations]
+    return max(sum(len(o[1]) for o in obs) for obs in sets) if any(sets) else 4
+
+
 # Below this many markers in common, no point-based (Horn) fit and no outlier rejection: two cannot outvote each other.
 HORN_MIN_MARKERS = 3
 
@@ -235,11 +244,12 @@ def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.flo
     that follows uses every marker).
     """
     d_from_m = {i: drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm) for i in ids}
-    starts = [t @ invert(d_from_m[i]) for i in ids for t in (every[i].carm_from_marker, every[i].mirror_carm_from_marker) if t is not None]
-    anchors = {i: every[i].observations for i in ids if every[i].observations}
+    starts = [t @ invert(d_from_m[i]) for i in ids for t in every[i].solutions]
+    anchors = {i: every[i].observations for i in ids if every[i].observations or every[i].solution_observations}
     if not anchors:
         return starts[0]
-    return fit_constellation(anchors, {i: d_from_m[i] for i in anchors}, starts)[0]
+    fits = [fit_constellation(a, {i: d_from_m[i] for i in a}, starts) for a in paired_anchors(anchors, every)]
+    return min(fits, key=lambda f: f[1])[0]
 
 
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
@@ -297,13 +307,15 @@ def _spanning(covariance: NDArray[np.float64], carm_from_drill: NDArray[np.float
     return covariance + np.outer(delta, delta)
 
 
-def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The marker's fluoroscopy pose, or its mirror solution when that one's normal is nearer the camera's."""
+def _camera_side(pose: MarkerPose, carm_from_tag_video: NDArray[np.float64]) -> tuple[NDArray[np.float64], tuple]:
+    """(carm_from_marker (4, 4), observations): the marker's fluoroscopy pose, or the other solution it leaves open
+    (:attr:`.MarkerPose.solutions`) whose normal is nearest the camera's; with the BBs that solution pairs where
+    the solutions pair them differently (:attr:`.MarkerPose.solution_observations`)."""
     if pose.mirror_carm_from_marker is None:
-        return pose.carm_from_marker
+        return pose.carm_from_marker, pose.observations
     normal = carm_from_tag_video[:3, 2]
-    best = max((pose.carm_from_marker, pose.mirror_carm_from_marker), key=lambda t: float(t[:3, 2] @ normal))
-    return np.asarray(best)
+    k = int(np.argmax([float(t[:3, 2] @ normal) for t in pose.solutions]))
+    return np.asarray(pose.solutions[k]), pose.solution_observations[k] if pose.solution_observations else pose.observations
 
 
 def _horn(ids, vids, poses):
