@@ -311,14 +311,16 @@ def register_markers(
                 img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
                 key = (m.identification_cost_mm, -int(ok.sum()))
                 if m.marker_id not in per_loose or key < per_loose[m.marker_id][0]:
-                    per_loose[m.marker_id] = (key, [(view, obj, img)])
+                    alt = None if m.alternative_bb_index is None else _paired(view, m, m.alternative_bb_index, marker_set)
+                    per_loose[m.marker_id] = (key, [(view, obj, img)], [alt])
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px, alternatives[item[0]]), sorted(per_marker.items()))
                  if p is not None]
         poses += [replace(p, needs_camera=True)
                   for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px, candidate_alternatives[item[0]]), sorted(per_candidate.items()))
                   if p is not None]
-        poses += [replace(p, needs_camera=True, loose=True) for p in pool.map(lambda item: _try_solve(item[0], item[1][1], max_residual_px), sorted(per_loose.items()))
+        poses += [replace(p, needs_camera=True, loose=True)
+                  for p in pool.map(lambda item: _try_solve(item[0], item[1][1], max_residual_px, item[1][2]), sorted(per_loose.items()))
                   if p is not None and p.converged]
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
