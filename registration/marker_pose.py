@@ -304,15 +304,13 @@ def register_markers(
     for det, view in zip(detections, views):
         for r in det.rejected:
             for m in r.loose:
-                if m.marker_id in identified or m.marker_id in per_candidate:
+                found = None if m.marker_id in identified or m.marker_id in per_candidate else _paired(view, m, m.bb_index, marker_set)
+                if found is None:
                     continue
-                ok = m.bb_index >= 0
-                obj = marker_set.by_id(m.marker_id).bb_centers_mm[m.bb_index[ok]]
-                img = np.array([b.center_px for b, keep in zip(m.bbs, ok) if keep])
-                key = (m.identification_cost_mm, -int(ok.sum()))
+                key = (m.identification_cost_mm, -len(found[1]))
                 if m.marker_id not in per_loose or key < per_loose[m.marker_id][0]:
                     alt = None if m.alternative_bb_index is None else _paired(view, m, m.alternative_bb_index, marker_set)
-                    per_loose[m.marker_id] = (key, [(view, obj, img)], [alt])
+                    per_loose[m.marker_id] = (key, [found], [alt])
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         poses = [p for p in pool.map(lambda item: _try_solve(item[0], item[1], max_residual_px, alternatives[item[0]]), sorted(per_marker.items()))
                  if p is not None]
