@@ -280,7 +280,7 @@ def predict_tag_places(*, locator: VideoMarkerLocator, camera: PinholeCamera, po
             continue
         starts = (refined[p.marker_id],) if p.marker_id in refined else p.solutions
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
-                 for t in starts if t is not None]
+                 for t in starts]
         cands = [c for c in cands if c is not None]
         places[p.marker_id] = np.stack(cands) if cands else np.zeros((0, 4, 2))
     return places
