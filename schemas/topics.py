@@ -10,12 +10,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
-__all__ = ["Encoding", "Topic", "TOPICS", "key", "topic_for_key", "ALIASES"]
+__all__ = ["Delivery", "Encoding", "Topic", "TOPICS", "key", "topic_for_key", "ALIASES"]
 
 
 class Encoding(str, Enum):
     PROTOBUF = "protobuf"
     JSON = "json"
+
+
+class Delivery(str, Enum):
+    """What a stream promises when the link is busy (``service/bus.py`` maps each to zenoh's QoS).
+
+    GUIDANCE: every sample arrives, ahead of images (small messages a display or a surgeon acts on).
+    EVERY: every sample arrives, behind guidance (megabytes, once per shot or per install).
+    LATEST: a newer sample supersedes an older one, which may be dropped when the link is busy (per-frame streams).
+    """
+
+    GUIDANCE = "guidance"
+    EVERY = "every"
+    LATEST = "latest"
 
 
 @dataclass(frozen=True)
@@ -24,28 +37,29 @@ class Topic:
     schema_name: str
     encoding: Encoding
     description: str
+    delivery: Delivery
 
 
 TOPICS: dict[str, Topic] = {
-    "camera_image": Topic("camera/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "drill-camera frames, JPEG, stamped at capture"),
-    "camera_markers": Topic("camera/markers", "drillnav.VideoMarkers", Encoding.JSON, "video marker detections per frame (ids, corners, X_D)"),
-    "fluoro_shot": Topic("fluoro/shot", "drillnav.FluoroShot", Encoding.JSON, "a new fluoroscopy image with its projection matrix (16-bit PNG of log attenuation)"),
-    "fluoro_image": Topic("fluoro/*/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "fluoroscopy views for display, PNG"),
-    "fluoro_markers": Topic("fluoro/markers", "drillnav.FluoroMarkers", Encoding.JSON, "marker poses in C from the last registration"),
-    "axis_carm": Topic("axis/carm", "drillnav.DrillAxis", Encoding.JSON, "the drill axis in frame C with its predicted error, one per camera frame"),
-    "axis_ct": Topic("axis/ct", "drillnav.DrillAxis", Encoding.JSON, "video-CT mode: the drill axis in the CT frame V with conformance to the nearest planned trajectory, one per camera frame once the CT is registered"),
-    "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz"),
-    "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen"),
-    "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG"),
-    "calibration": Topic("calibration/active", "drillnav.Calibration", Encoding.JSON, "the calibrations in use (camera.json, drill.json, markers), at start and on each install; first in every recorded file"),
+    "camera_image": Topic("camera/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "drill-camera frames, JPEG, stamped at capture", Delivery.LATEST),
+    "camera_markers": Topic("camera/markers", "drillnav.VideoMarkers", Encoding.JSON, "video marker detections per frame (ids, corners, X_D)", Delivery.LATEST),
+    "fluoro_shot": Topic("fluoro/shot", "drillnav.FluoroShot", Encoding.JSON, "a new fluoroscopy image with its projection matrix (16-bit PNG of log attenuation)", Delivery.EVERY),
+    "fluoro_image": Topic("fluoro/*/image", "foxglove.CompressedImage", Encoding.PROTOBUF, "fluoroscopy views for display, PNG", Delivery.EVERY),
+    "fluoro_markers": Topic("fluoro/markers", "drillnav.FluoroMarkers", Encoding.JSON, "marker poses in C from the last registration", Delivery.GUIDANCE),
+    "axis_carm": Topic("axis/carm", "drillnav.DrillAxis", Encoding.JSON, "the drill axis in frame C with its predicted error, one per camera frame", Delivery.GUIDANCE),
+    "axis_ct": Topic("axis/ct", "drillnav.DrillAxis", Encoding.JSON, "video-CT mode: the drill axis in the CT frame V with conformance to the nearest planned trajectory, one per camera frame once the CT is registered", Delivery.GUIDANCE),
+    "status": Topic("registration/status", "drillnav.Status", Encoding.JSON, "registration state, counters, dropped frames, about 1 Hz", Delivery.GUIDANCE),
+    "events": Topic("registration/events", "drillnav.Event", Encoding.JSON, "re-registrations, refusals and errors, as they happen", Delivery.GUIDANCE),
+    "overlay": Topic("overlay/*", "foxglove.CompressedImage", Encoding.PROTOBUF, "each view with the axis, its cone and the detections, PNG", Delivery.LATEST),
+    "calibration": Topic("calibration/active", "drillnav.Calibration", Encoding.JSON, "the calibrations in use (camera.json, drill.json, markers), at start and on each install; first in every recorded file", Delivery.EVERY),
     # Foxglove's own schemas (service/scene_publisher.py, docs/foxglove.md): the navigation scene in 3D and on each image.
-    "scene_tf": Topic("scene/tf", "foxglove.FrameTransform", Encoding.PROTOBUF, "frames carm, drill_camera, carm/<view>, ct, marker/<id> (m, quaternion)"),
-    "scene_entities": Topic("scene/entities", "foxglove.SceneUpdate", Encoding.PROTOBUF, "the drill axis (arrow), its error cone and the registered markers"),
-    "scene_calibration": Topic("scene/calibration/*", "foxglove.CameraCalibration", Encoding.PROTOBUF, "a pinhole model per C-arm view (from its P) and for drill_camera"),
-    "scene_annotations": Topic("scene/annotations/*", "foxglove.ImageAnnotations", Encoding.PROTOBUF, "the axis, its cone and the markers projected onto each C-arm view"),
-    "scene_log": Topic("scene/log", "foxglove.Log", Encoding.PROTOBUF, "registration events as log lines"),
-    "audit": Topic("audit", "drillnav.AuditEntry", Encoding.JSON, "who changed what through the REST API (calibration installed, recording started, shot requested, failed authentications)"),
-    "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame"),
+    "scene_tf": Topic("scene/tf", "foxglove.FrameTransform", Encoding.PROTOBUF, "frames carm, drill_camera, carm/<view>, ct, marker/<id> (m, quaternion)", Delivery.LATEST),
+    "scene_entities": Topic("scene/entities", "foxglove.SceneUpdate", Encoding.PROTOBUF, "the drill axis (arrow), its error cone and the registered markers", Delivery.LATEST),
+    "scene_calibration": Topic("scene/calibration/*", "foxglove.CameraCalibration", Encoding.PROTOBUF, "a pinhole model per C-arm view (from its P) and for drill_camera", Delivery.LATEST),
+    "scene_annotations": Topic("scene/annotations/*", "foxglove.ImageAnnotations", Encoding.PROTOBUF, "the axis, its cone and the markers projected onto each C-arm view", Delivery.LATEST),
+    "scene_log": Topic("scene/log", "foxglove.Log", Encoding.PROTOBUF, "registration events as log lines", Delivery.GUIDANCE),
+    "audit": Topic("audit", "drillnav.AuditEntry", Encoding.JSON, "who changed what through the REST API (calibration installed, recording started, shot requested, failed authentications)", Delivery.GUIDANCE),
+    "twin_truth": Topic("twin/truth", "drillnav.TwinTruth", Encoding.JSON, "digital twin only: the true carm_from_drill and drill axis of each camera frame", Delivery.EVERY),
 }
 
 ALIASES = {"drill-axis": "axis_carm", "drill-axis-ct": "axis_ct", "status": "status", "events": "events", "markers": "camera_markers", "shots": "fluoro_shot"}

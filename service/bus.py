@@ -18,10 +18,12 @@ from pydantic import ValidationError
 
 from drillnav.registration.errors import DrillnavError
 
+from drillnav.schemas.topics import TOPICS, Delivery, key, topic_for_key
+
 from .bus_policy import access_control_config, endpoint_protocol
 from .settings import SettingsError, ZenohSettings, describe_validation_error
 
-__all__ = ["BusError", "zenoh_config", "open_session", "bus_section"]
+__all__ = ["BusError", "zenoh_config", "open_session", "bus_section", "qos", "qos_for_key", "declare_publisher", "put"]
 
 
 class BusError(DrillnavError):
@@ -108,3 +110,36 @@ def open_session(section: ZenohSettings | None = None, /, **fields: Any) -> zeno
     except zenoh.ZError as exc:
         where = ", ".join([*(f"listen {e}" for e in s.listen), *(f"connect {e}" for e in s.connect)]) or "no endpoints"
         raise BusError(f"the zenoh session could not open ({where}): {str(exc).split(' at ')[0]}") from None
+
+
+# Each stream's delivery (schemas/topics.py) as zenoh's QoS. zenoh's default for a put drops it when the link's queue
+# (two batches a priority) stays full for a millisecond, which a view's overlay JPEGs do on a loaded machine: an axis
+# published then was lost without a trace. Guidance blocks instead, on a priority of its own so images never queue
+# ahead of it; a link blocked for longer than zenoh's ``wait_before_close`` (5 s) is closed, so a stuck client cannot
+# hold the node.
+_QOS: dict[Delivery, dict[str, Any]] = {
+    Delivery.GUIDANCE: {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.INTERACTIVE_HIGH, "express": True},
+    Delivery.EVERY: {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.DATA},
+    Delivery.LATEST: {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.DATA},
+}
+
+
+def qos(name: str) -> dict[str, Any]:
+    """zenoh's put/publisher QoS keywords for the topic ``name`` (a key of ``TOPICS``)."""
+    return dict(_QOS[TOPICS[name].delivery])
+
+
+def qos_for_key(prefix: str, key_expr: str) -> dict[str, Any]:
+    """The QoS for a concrete key: its topic's, or every-sample at data priority for a key drillnav does not name."""
+    topic = topic_for_key(prefix, key_expr)
+    return dict(_QOS[topic.delivery if topic is not None else Delivery.EVERY])
+
+
+def declare_publisher(session: zenoh.Session, prefix: str, name: str, view: str | None = None, **kwargs: Any) -> zenoh.Publisher:
+    """A publisher on the topic ``name`` with its delivery's QoS."""
+    return session.declare_publisher(key(prefix, name, view), **qos(name), **kwargs)
+
+
+def put(session: zenoh.Session, prefix: str, name: str, data: bytes, view: str | None = None, **kwargs: Any) -> None:
+    """One sample on the topic ``name`` with its delivery's QoS."""
+    session.put(key(prefix, name, view), data, **qos(name), **kwargs)

@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from drillnav.drivers.fluoro_dicom import read_fluoro
 from drillnav.registration.errors import DrillnavError
@@ -41,6 +40,7 @@ from drillnav.schemas.calibration import read_camera_calibration, read_drill_cal
 from drillnav.schemas.markers import read_marker_set
 from drillnav.schemas.topics import TOPICS, key
 
+from . import bus
 from .bus import open_session
 from .camera_pump import CameraPump
 from .node import RegistrationNode
@@ -283,7 +283,7 @@ class Daemon:
         return tracker
 
     def _event(self, level: str, message: str) -> None:
-        self.session.put(key(self.prefix, "events"), msg.Event(stamp_ns=time.time_ns(), level=level, message=message).to_bytes())
+        bus.put(self.session, self.prefix, "events", msg.Event(stamp_ns=time.time_ns(), level=level, message=message).to_bytes())
 
     def _spawn(self, target, name: str) -> None:
         t = threading.Thread(target=target, name=name, daemon=True)
@@ -307,7 +307,7 @@ class Daemon:
         return self.settings.recording.camera_jpeg_quality or 92
 
     def _camera_loop(self) -> None:
-        pub = self.session.declare_publisher(key(self.prefix, "camera_image"))
+        pub = bus.declare_publisher(self.session, self.prefix, "camera_image")
 
         def on_frame(frame) -> None:
             self._last_frame_ns = time.monotonic_ns()
@@ -362,9 +362,9 @@ class Daemon:
                     self.errors.append(f"{path}: {reason}")
                     self._event("error", f"fluoroscopy refused: {path}: {reason}")
                     continue
-                # Block rather than drop under congestion: a shot is megabytes, and a lost one is a registration missed.
-                self.session.put(key(self.prefix, "fluoro_shot"), shot.to_bytes(), congestion_control=zenoh.CongestionControl.BLOCK)
-                self.session.put(key(self.prefix, "fluoro_image", name), msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"))
+                # Every shot arrives (blocked, not dropped, when the link is busy): a lost one is a registration missed.
+                bus.put(self.session, self.prefix, "fluoro_shot", shot.to_bytes())
+                bus.put(self.session, self.prefix, "fluoro_image", msg.compressed_image(to_display(img.pixels_log), stamp_ns=stamp, frame_id=f"carm/{name}", fmt="png"), name)
             self.intake.mark_processed(path)  # published: not offered again after a restart
 
     # -- calibration jobs ------------------------------------------------------------------
@@ -400,13 +400,13 @@ class Daemon:
         if bundle is None:
             return
         s, cal = self.settings, self.settings.calibration.folder
-        self.session.put(key(self.prefix, "calibration"), active_calibration_message(
+        bus.put(self.session, self.prefix, "calibration", active_calibration_message(
             camera=bundle.camera, axis_drill=bundle.axis_drill, axis_uncertainty=bundle.axis_uncertainty, marker_set=self.node.marker_set, stamp_ns=time.time_ns(),
             camera_file=None if s.twin else s.camera.calibration or cal / "camera.json",
             drill_file=None if s.twin else s.camera.drill_calibration or cal / "drill.json"))
 
     def _publish_audit(self, entry: dict[str, Any]) -> None:
-        self.session.put(key(self.prefix, "audit"), msg.AuditEntry(**entry).to_bytes())
+        bus.put(self.session, self.prefix, "audit", msg.AuditEntry(**entry).to_bytes())
 
     def _start_interop(self, stack: contextlib.ExitStack, *, axis_drill, camera) -> None:
         """What other tools connect to, each from its settings: Foxglove's scene topics and live WebSocket, OpenIGTLink (Slicer), ROS 2."""

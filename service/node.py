@@ -49,6 +49,8 @@ from drillnav.registration.overlay import annotate, draw_axis, draw_detections, 
 from drillnav.registration.pipeline import LiveCalibration, ReliableLimits
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
+
+from . import bus
 from drillnav.service.joint_worker import JointSolveWorker
 
 __all__ = ["RegistrationNode", "NodeCounters"]
@@ -145,12 +147,12 @@ class RegistrationNode:
         with contextlib.ExitStack() as stack:
             json_enc = zenoh.Encoding.APPLICATION_JSON
             s, p = self.session, self.prefix
-            self._pub_axis = stack.enter_context(s.declare_publisher(key(p, "axis_carm"), encoding=json_enc))
-            self._pub_axis_ct = stack.enter_context(s.declare_publisher(key(p, "axis_ct"), encoding=json_enc))
-            self._pub_status = stack.enter_context(s.declare_publisher(key(p, "status"), encoding=json_enc))
-            self._pub_events = stack.enter_context(s.declare_publisher(key(p, "events"), encoding=json_enc))
-            self._pub_markers = stack.enter_context(s.declare_publisher(key(p, "fluoro_markers"), encoding=json_enc))
-            self._pub_video = stack.enter_context(s.declare_publisher(key(p, "camera_markers"), encoding=json_enc))
+            self._pub_axis = stack.enter_context(bus.declare_publisher(s, p, "axis_carm", encoding=json_enc))
+            self._pub_axis_ct = stack.enter_context(bus.declare_publisher(s, p, "axis_ct", encoding=json_enc))
+            self._pub_status = stack.enter_context(bus.declare_publisher(s, p, "status", encoding=json_enc))
+            self._pub_events = stack.enter_context(bus.declare_publisher(s, p, "events", encoding=json_enc))
+            self._pub_markers = stack.enter_context(bus.declare_publisher(s, p, "fluoro_markers", encoding=json_enc))
+            self._pub_video = stack.enter_context(bus.declare_publisher(s, p, "camera_markers", encoding=json_enc))
             if self.camera_on_bus:
                 stack.enter_context(s.declare_subscriber(key(p, "camera_image"), self._on_frame))
             stack.enter_context(s.declare_subscriber(key(p, "fluoro_shot"), self._on_shot))
@@ -476,7 +478,7 @@ class RegistrationNode:
                     coef = np.asarray(distortion[name]) if name in distortion else None
                     bgr = annotate(draw_axis(base[k], shot.view, axis, cone_half_angle_deg=cone_deg, distortion_px=coef), view_name=name,
                                    stamp_ns=shot.stamp_ns, legend=False)
-                    self.session.put(key(self.prefix, "overlay", name), msg.compressed_image(bgr, stamp_ns=stamp, frame_id=f"carm/{name}", fmt="jpeg", quality=80))
+                    bus.put(self.session, self.prefix, "overlay", msg.compressed_image(bgr, stamp_ns=stamp, frame_id=f"carm/{name}", fmt="jpeg", quality=80), name)
             except Exception as exc:  # noqa: BLE001 - a worker survives what it did not foresee
                 self._loop_error("overlay", exc)
 

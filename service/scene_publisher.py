@@ -32,6 +32,8 @@ from drillnav.schemas import foxglove_scene as fox
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
 
+from .bus import qos_for_key
+
 __all__ = ["ScenePublisher"]
 
 
@@ -104,7 +106,7 @@ class ScenePublisher:
         if latch is not None:
             with self._lock:
                 self._latched[(key_expr, latch)] = data
-        self.session.put(key_expr, data)
+        self.session.put(key_expr, data, **qos_for_key(self.prefix, key_expr))
         self.published += 1
 
     def _republish_loop(self) -> None:
@@ -112,7 +114,7 @@ class ScenePublisher:
             with self._lock:
                 latched = list(self._latched.items())
             for (key_expr, _), data in latched:
-                self.session.put(key_expr, data)
+                self.session.put(key_expr, data, **qos_for_key(self.prefix, key_expr))
 
     # -- handlers -------------------------------------------------------------------------
     def _on_axis_carm(self, data: bytes) -> None:
