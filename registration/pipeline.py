@@ -370,7 +370,7 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
                                   poses: tuple[MarkerPose, ...], every: tuple[MarkerPose, ...], marker_set: MarkerSet,
                                   used_before: int) -> tuple[VideoDetections, DrillRegistration] | None:
     """The joint registration of ``video`` with the tags whose code reads only in part, named among the markers posed
-    in fluoroscopy (``poses``, loose hypotheses left out) that it misses (:meth:`.VideoMarkerLocator.name_among_posed`),
+    in fluoroscopy (``every``: loose hypotheses included) that it misses (:meth:`.VideoMarkerLocator.name_among_posed`),
     when it bears them out: (detections with the named tags it used, registration), or None.
 
     Borne out: the registration uses at least two markers, more than ``used_before`` (the markers the frame's
@@ -380,7 +380,9 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     which a wrong name, tens of millimetres off, does not.
     ``every``: the poses the registration is given (loose hypotheses included, as for the frame's own).
     """
-    wanted = {p.marker_id for p in _missing(video, poses, locator)}
+    # A loose hypothesis's marker is wanted too: the camera's word on the ring it waits for is that marker's tag, and
+    # a name read in part is borne out, like any, only beside another marker (corroborate_loose, the claims).
+    wanted = {p.marker_id for p in _missing(video, every, locator)}
     named = locator.name_among_posed(image, video, wanted)
     if not named:
         return None
