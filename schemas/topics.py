@@ -19,11 +19,12 @@ class Encoding(str, Enum):
 
 
 class Delivery(str, Enum):
-    """What a stream promises when the link is busy (``service/bus.py`` maps each to zenoh's QoS).
+    """What a stream promises when a link is busy (``service/bus.py`` maps each to zenoh's QoS).
 
-    GUIDANCE: every sample arrives, ahead of images (small messages a display or a surgeon acts on).
-    EVERY: every sample arrives, behind guidance (megabytes, once per shot or per install).
-    LATEST: a newer sample supersedes an older one, which may be dropped when the link is busy (per-frame streams).
+    GUIDANCE: small messages a display or a surgeon acts on, on a priority of their own ahead of images; a client that
+        stops reading loses its samples (gaps in ``sequence``) rather than hold the publisher.
+    EVERY: every sample arrives, the publisher waiting for a busy link (megabytes, once per shot or per install).
+    LATEST: a newer sample supersedes an older one, which may be dropped when the link is busy (per-frame images).
     """
 
     GUIDANCE = "guidance"

@@ -112,13 +112,17 @@ def open_session(section: ZenohSettings | None = None, /, **fields: Any) -> zeno
         raise BusError(f"the zenoh session could not open ({where}): {str(exc).split(' at ')[0]}") from None
 
 
-# Each stream's delivery (schemas/topics.py) as zenoh's QoS. zenoh's default for a put drops it when the link's queue
-# (two batches a priority) stays full for a millisecond, which a view's overlay JPEGs do on a loaded machine: an axis
-# published then was lost without a trace. Guidance blocks instead, on a priority of its own so images never queue
-# ahead of it; a link blocked for longer than zenoh's ``wait_before_close`` (5 s) is closed, so a stuck client cannot
-# hold the node.
+# Each stream's delivery (schemas/topics.py) as zenoh's QoS. zenoh drops a put (congestion control DROP, its
+# default) when its priority's queue on a link (two batches) stays full for a millisecond. At the default priority
+# the node's overlay JPEGs filled that queue on a loaded machine and an axis published just after them was lost
+# (tests/test_bus_delivery.py: 148 of 300 axes arrived at a client slow to read the overlays). Guidance now has a
+# priority of its own, ahead of images, and is not express (an express sample takes a batch of its own and fills the
+# queue again: 159 of 300): 300 of 300. It still drops rather than block: blocking would let one client that stops
+# reading hold the node's frame loop for zenoh's wait_before_close (5 s), and the other clients lost a third of the
+# axes meanwhile; dropping loses only that client's samples, which it sees as gaps in the axis's ``sequence``.
+# Shots and calibrations block: one lost is a registration missed, and they are published off the frame path.
 _QOS: dict[Delivery, dict[str, Any]] = {
-    Delivery.GUIDANCE: {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.INTERACTIVE_HIGH, "express": True},
+    Delivery.GUIDANCE: {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.INTERACTIVE_HIGH},
     Delivery.EVERY: {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.DATA},
     Delivery.LATEST: {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.DATA},
 }
