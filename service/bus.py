@@ -17,7 +17,6 @@ import zenoh
 from pydantic import ValidationError
 
 from drillnav.registration.errors import DrillnavError
-
 from drillnav.schemas.topics import TOPICS, Delivery, key, topic_for_key
 
 from .bus_policy import access_control_config, endpoint_protocol

@@ -49,9 +49,9 @@ from drillnav.registration.overlay import annotate, draw_axis, draw_detections, 
 from drillnav.registration.pipeline import LiveCalibration, ReliableLimits
 from drillnav.schemas import messages as msg
 from drillnav.schemas.topics import key
+from drillnav.service.joint_worker import JointSolveWorker
 
 from . import bus
-from drillnav.service.joint_worker import JointSolveWorker
 
 __all__ = ["RegistrationNode", "NodeCounters"]
 
