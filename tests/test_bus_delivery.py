@@ -53,7 +53,7 @@ def _overlay_flood(session, stop: threading.Event) -> list[threading.Thread]:
     return threads
 
 
-def test_every_axis_arrives_while_a_client_reads_the_overlays_slowly():
+def test_axes_are_not_lost_behind_overlays_that_a_client_reads_slowly():
     ep = free_endpoint()
     got: list[bytes] = []
     overlays = [0]
