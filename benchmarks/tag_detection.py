@@ -14,8 +14,9 @@ product's recovery, :mod:`drillnav.registration.tag_recovery`): here predicted f
 marker's true pose through the CALIBRATED camera (its calibration error is in the prediction; the registration's
 own error is not: ``benchmarks/accuracy.py --diagnose --per-degradation`` measures recovery from the product's
 registration). Reported: tags recovered, false recoveries (a corner over 3 px from the truth) and the recovered
-corners' RMS error. Every marker's tag is placed where the same pose puts it (``recover(placed_px=...)``, as the
-product passes its registration's): a tag of the set placed away from a missed one is no rival to its identity.
+corners' RMS error. Every marker's tag is placed where the same pose puts it (``recover(placed_px=..., by_place=True)``,
+as the product passes a settled registration's): a tag of the set placed away from a missed one is no rival to its
+identity, and a tag found where predicted is named by its place when no other placed marker can be there.
 
 The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
 :mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
@@ -137,8 +138,10 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                                                  tag_corners_marker_mm=scene.marker_set.by_id(i).tag_corners_mm(), camera=scene.calibrated_camera)
                           for i in scene.carm_from_marker}
                 placed = {i: np.zeros((0, 4, 2)) if c is None else c[None] for i, c in places.items()}
-                _score_recovered(locator.recover(frame, det, {i: c for i, c in predicted_cut.items() if c is not None}, placed_px=placed), cut, r, "partly")
-                _score_recovered(locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}, placed_px=placed), truth, r, "recovered")
+                _score_recovered(locator.recover(frame, det, {i: c for i, c in predicted_cut.items() if c is not None}, placed_px=placed, by_place=True),
+                                 cut, r, "partly")
+                _score_recovered(locator.recover(frame, det, {i: c for i, c in expected.items() if c is not None}, placed_px=placed, by_place=True),
+                                 truth, r, "recovered")
                 # The same tags predicted 10-22 px off, as a registration on one or two markers predicts them, looked for
                 # within the weak registration's reach (pipeline.WEAK_REACH_PX).
                 off_rng = np.random.default_rng([seed, r["frames"], 4])
@@ -150,7 +153,7 @@ def measure(*, seeds: int = 3, poses: int = 4, first_seed: int = 3000, condition
                 shifted = {i: moved[i] for i, c in expected.items() if c is not None}
                 placed_moved = {i: moved[i][None] if i in moved else np.zeros((0, 4, 2)) for i in places}
                 t0 = time.perf_counter()
-                _score_recovered(locator.recover(frame, det, shifted, reach_px=WEAK_REACH_PX, placed_px=placed_moved), truth, r, "reached")
+                _score_recovered(locator.recover(frame, det, shifted, reach_px=WEAK_REACH_PX, placed_px=placed_moved, by_place=True), truth, r, "reached")
                 r["reach_seconds"] += time.perf_counter() - t0
     out = {}
     for c, r in rows.items():

@@ -345,7 +345,9 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
         # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
         # also tries the prediction shifted.
-        more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed)
+        # With the solution settled, a tag found where predicted is named by its place too (the marker posed there).
+        more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed,
+                               by_place=reg.mirror_carm_from_drill is None)
     left = set(expected) - {m.marker_id for m in more.markers}
     if weak:
         # A registration on one marker (or two) may be far off, its marker posed upside down in fluoroscopy (twin

@@ -31,6 +31,10 @@ for there:
    expected id, and no other id of the dictionary agreeing with as many cells as the expected one, suffice. The
    place itself is the rest of the evidence: a black-bordered square whose four edges lie within ``tolerance_px``
    of where the registration predicts this marker's tag.
+   Identity by place (``placed_here``): when the prediction comes from a settled registration that places the
+   markers posed in fluoroscopy, and this marker is one of them, no marker that registration does not place can
+   lie where this one is; ``rivals`` are then the posed markers it places here too, and with none the cells read
+   need only agree (``min_agreement`` of them), however few a highlight leaves.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
 are refused, each with its reason.
@@ -179,6 +183,7 @@ def recover_tag(
     min_contrast: float = 30.0,
     rivals: Sequence[int] | None = None,
     min_cells_among_rivals: int = 8,
+    placed_here: bool = False,
     partial: bool = False,
     square: Callable[[BorderSteps], SquareFit | None] | None = None,
 ) -> TagRecovery:
@@ -187,7 +192,9 @@ def recover_tag(
     ``tolerance_px``: how far (px, along each edge's normal) an edge may lie from its prediction. ``partial``: a
     tag partly out of the frame is looked for on what of it is in the frame (its cells outside are unread; a
     corner outside is the crossing of its edges' lines). ``square``: a tag with one edge hidden is placed by its pose
-    fitted to the other three (:func:`fit_tag_edges`). See the module docstring for the method and the acceptance rule.
+    fitted to the other three (:func:`fit_tag_edges`). ``placed_here``: the prediction is where a registration puts
+    this marker, posed in fluoroscopy, and ``rivals`` are the markers that registration places here too (see the module
+    docstring, "identity by place"). See the module docstring for the method and the acceptance rule.
     """
     pred = np.asarray(predicted_px, dtype=np.float64)
     if pred.shape != (4, 2) or not np.isfinite(pred).all():
@@ -203,7 +210,8 @@ def recover_tag(
         return got
     corners, frac_t = got.corners_px, got.edge_fraction
     return _verify(gray, corners, codes, aruco_id, min_cells=min_cells, min_agreement=min_agreement, min_margin_cells=min_margin_cells,
-                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals, partial=partial)
+                   min_contrast=min_contrast, edge_fraction=frac_t, rivals=rivals, min_cells_among_rivals=min_cells_among_rivals, placed_here=placed_here,
+                   partial=partial)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -462,7 +470,8 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
 
 
 def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreement: float, min_margin_cells: int, min_contrast: float,
-            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8, partial: bool = False) -> TagRecovery:
+            edge_fraction, rivals: Sequence[int] | None = None, min_cells_among_rivals: int = 8, placed_here: bool = False,
+            partial: bool = False) -> TagRecovery:
     """Read the tag's cells through the homography of ``corners`` and judge its identity (see the module docstring)."""
     got = read_code(gray, corners, code_size=codes.shape[1], min_contrast=min_contrast, partial=partial)
     if got.reason:
@@ -481,6 +490,10 @@ def _verify(gray, corners, codes, aruco_id: int, *, min_cells: int, min_agreemen
         return TagRecovery(corners_px=corners, reason="", **common)
     if n_read >= min_cells and rivals is None:
         return TagRecovery(corners_px=None, reason=f"id {other} fits the cells read nearly as well ({int(agree[other])} vs {mine} of {n_read})", **common)
+    if placed_here and rivals is not None and not set(int(r) for r in rivals) - {aruco_id}:
+        # Identity by place: the marker is posed in fluoroscopy where its tag is found, and no other marker the
+        # registration places can be here; the cells read (however few under a glare) only have to agree.
+        return TagRecovery(corners_px=corners, reason="", **common)
     # Fewer cells than the dictionary-wide rule needs, or an id from outside the set near them: judged among the
     # ids that may lie there.
     if rivals is None or n_read < min_cells_among_rivals:

@@ -57,6 +57,16 @@ def _predicted(scene, carm_from_drill, marker_id):
                                tag_corners_marker_mm=scene.marker_set.by_id(marker_id).tag_corners_mm(), camera=scene.calibrated_camera)
 
 
+def _glared_frame(seed: int):
+    """The detection benchmark's first frame of ``seed`` with tag glare on: (scene, pose, image, locator, what the locator finds,
+    the true corners)."""
+    scene = make_scene(seed=seed, render=False, degradations=Degradations(tag_glare=True))
+    pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
+    image = scene.render_camera(np.random.default_rng([seed, 3]), carm_from_drill=pose)
+    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
+    return scene, pose, image, locator, locator.locate(image), _true_corners(scene, pose)
+
+
 def test_a_gloved_tag_is_recovered_within_a_pixel_of_the_truth(gloved):
     scene, pose, image, locator = gloved
     truth = _true_corners(scene, pose)
@@ -185,13 +195,8 @@ def test_a_glared_tag_with_few_readable_cells_is_recovered_when_no_other_tag_of_
     but every other tag of the marker set is in plain view elsewhere in the frame, so none of them lies at the
     predicted place: the 10 cells, all agreeing, and the black-bordered square where the marker's tag is expected
     name it."""
-    seed, marker = 3000, 33
-    scene = make_scene(seed=seed, render=False, degradations=Degradations(tag_glare=True))
-    pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
-    image = scene.render_camera(np.random.default_rng([seed, 3]), carm_from_drill=pose)
-    locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
-    video = locator.locate(image)
-    truth = _true_corners(scene, pose)
+    marker = 33
+    scene, pose, image, locator, video, truth = _glared_frame(3000)
     seen = {m.marker_id for m in video.markers}
     assert marker in truth and marker not in seen, "the glare no longer hides the tag from ArUco"
     assert set(truth) - {marker} <= seen, "another tag of the set is missing too"
@@ -510,3 +515,39 @@ def test_a_weak_registration_searches_the_whole_frame_for_the_posed_tags_it_puts
     assert np.linalg.norm(found.by_id()[other_id].corners_px - video.by_id()[other_id].corners_px, axis=1).max() < 1.0
     assert set(reg.used_ids) == {turned_id, other_id}
     assert not predicted_axis_error(found, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm).reliable
+
+
+def test_a_tag_glared_past_reading_is_named_by_the_place_its_posed_marker_holds():
+    """A saturated highlight over nearly all of a tag's code (twin seed 9305, tag glare, first frame of the detection
+    benchmark's poses: marker 43, one code cell readable). No count of cells names it, and every tag of the marker set
+    not placed elsewhere is a rival, so recovery refuses it. But the registration that predicts it places the markers
+    posed in fluoroscopy, and marker 43 is one of them, where its tag is found: a marker the registration does not
+    place cannot lie where a posed one is. With no other posed marker placed there (``by_place``), the black-bordered
+    square where 43 is predicted is 43, its one cell agreeing; within a pixel of the truth. Another posed marker placed
+    at the same spot keeps it refused, and so does a prediction that finds it only when shifted (a weak
+    registration's reach): the place vouches only as predicted."""
+    marker = 43
+    scene, pose, image, locator, video, truth = _glared_frame(9305)
+    assert marker in truth and marker not in video.by_id(), "the glare no longer hides the tag from ArUco"
+    places = {i: _predicted(scene, pose, i) for i in scene.carm_from_marker}
+    placed = {i: c[None] for i, c in places.items()}
+    gray = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
+    aruco_id = scene.marker_set.by_id(marker).aruco_id
+    read = recover_tag(gray, places[marker], aruco_id=aruco_id, rivals=())
+    assert not read.accepted and read.cells_read < 8 and read.cells_agreeing == read.cells_read, read
+    assert marker not in locator.recover(image, video, {marker: places[marker]}, placed_px=placed).by_id()
+    got = locator.recover(image, video, {marker: places[marker]}, placed_px=placed, by_place=True).by_id()
+    assert got[marker].recovered
+    assert np.linalg.norm(got[marker].corners_px - truth[marker], axis=1).max() <= CORNER_TOLERANCE_PX
+    # Another posed marker, unseen, placed where 43 is expected: a rival one cell cannot tell apart.
+    other = next(m.marker_id for m in video.markers if m.marker_id != marker)
+    unseen = replace(video, markers=tuple(m for m in video.markers if m.marker_id != other))
+    assert marker in locator.recover(image, unseen, {marker: places[marker]}, placed_px=placed, by_place=True).by_id()
+    crowded = {**placed, other: places[marker][None]}
+    assert marker not in locator.recover(image, unseen, {marker: places[marker]}, placed_px=crowded, by_place=True).by_id()
+    # Predicted 16 px off: found within a weak registration's reach only by shifting, where the place does not vouch.
+    off = {marker: places[marker] + np.array([16.0, 0.0])}
+    assert marker not in locator.recover(image, video, off, reach_px=24.0, placed_px=placed, by_place=True).by_id()
+    # Another marker's tag in plain view where 43 is expected: its cells disagree, place or not.
+    seen = next(m for m in video.markers if m.marker_id in places)
+    assert not recover_tag(gray, seen.corners_px, aruco_id=aruco_id, rivals=(), placed_here=True).accepted
