@@ -335,10 +335,11 @@ class VideoMarkerLocator:
             missing one (its identity judged against it, :func:`.tag_recovery.recover_tag`'s ``rivals``) unless it
             is seen elsewhere in the frame or placed away from the missing tag (:func:`placed_elsewhere`).
         ``by_place``: ``placed_px`` comes from a registration whose solution is settled (no mirror left open) and
-            ``expected_corners_px`` from the same one: where a tag is found as predicted (not shifted), the marker
-            posed in fluoroscopy there is where it is, so no marker the registration does not place can be there;
-            only the posed markers it places here too are rivals, and with none the code cells read need only
-            agree, however few a glare leaves (:func:`.tag_recovery.recover_tag`'s ``placed_here``).
+            ``expected_corners_px`` from the same one: where a tag is found as predicted (or within ``reach_px`` of
+            it), the marker posed in fluoroscopy there is where it is, so no marker the registration does not place
+            can be there (markers are 40 mm across); only the posed markers it places here too (within the reach:
+            :func:`placed_elsewhere`) are rivals, and with none the code cells read need only agree, however few a
+            glare leaves (:func:`.tag_recovery.recover_tag`'s ``placed_here``).
         Markers already in ``video`` and ids not in the marker set are skipped. Returns ``video`` itself when
         nothing was recovered. A recovered marker is flagged ``recovered`` and its covariance computed with
         ``RECOVERED_CORNER_SIGMA_PX``.
@@ -363,8 +364,8 @@ class VideoMarkerLocator:
             # Identity by place: of the rivals, only the posed markers the registration may put here.
             posed_rivals = tuple(a for a in rivals if self._specs[name][a].marker_id in placed) if by_place and placed_px is not None else None
 
-            def attempt(pred, *, as_predicted: bool) -> VideoMarker | None:
-                here = as_predicted and posed_rivals is not None
+            def attempt(pred) -> VideoMarker | None:
+                here = posed_rivals is not None
                 got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=posed_rivals if here else rivals,
                                   placed_here=here, partial=True, square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if not got.accepted:
@@ -375,12 +376,12 @@ class VideoMarkerLocator:
                 return marker if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX else None
 
             for k, pred in enumerate(p + shift for shift in steps for p in preds):
-                got = attempt(pred, as_predicted=k < len(preds))
+                got = attempt(pred)
                 if got is not None:
                     if k >= len(preds):
                         # Found from a shifted prediction: looked for once more where it was found, so that its edges
                         # (and a hidden edge's square fit) are placed from a prediction as near as a good registration's.
-                        again = attempt(got.corners_px, as_predicted=False)
+                        again = attempt(got.corners_px)
                         got = again if again is not None else got
                     found.append(got)
                     break
