@@ -362,12 +362,13 @@ class VideoMarkerLocator:
                            and not (other.marker_id in placed and placed_elsewhere(placed[other.marker_id], preds, tolerance_px=tolerance_px, reach_px=reach_px)))
 
             # Identity by place: of the rivals, only the posed markers the registration may put here.
-            posed_rivals = tuple(a for a in rivals if self._specs[name][a].marker_id in placed) if by_place and placed_px is not None else None
+            here = by_place and placed_px is not None
+            if here:
+                rivals = tuple(a for a in rivals if self._specs[name][a].marker_id in placed)
 
             def attempt(pred) -> VideoMarker | None:
-                here = posed_rivals is not None
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=posed_rivals if here else rivals,
-                                  placed_here=here, partial=True, square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=tolerance_px, rivals=rivals, placed_here=here,
+                                  partial=True, square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if not got.accepted:
                     return None
                 marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX)
