@@ -16,7 +16,8 @@ own error is not: ``benchmarks/accuracy.py --diagnose --per-degradation`` measur
 registration). Reported: tags recovered, false recoveries (a corner over 3 px from the truth) and the recovered
 corners' RMS error. Every marker's tag is placed where the same pose puts it (``recover(placed_px=..., by_place=True)``,
 as the product passes a settled registration's): a tag of the set placed away from a missed one is no rival to its
-identity, and a tag found where predicted is named by its place when no other placed marker can be there.
+identity, and a tag found where predicted (or, in the 10-22 px column, within the reach) is named by its place when
+no other placed marker can be there.
 
 The missed tags are also searched for with no prediction (``VideoMarkerLocator.search``,
 :mod:`drillnav.registration.tag_search`: what a frame that shares no marker with fluoroscopy gets): tags found,
