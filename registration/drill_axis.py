@@ -185,6 +185,7 @@ def detect_jig(image: NDArray[np.uint8], camera) -> JigDetection:
     """
     import cv2
 
+    from .aruco_detect import detect_aruco
     from .transforms import make_transform
 
     image = np.asarray(image)
@@ -195,8 +196,7 @@ def detect_jig(image: NDArray[np.uint8], camera) -> JigDetection:
     board = jig_board()
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    corners, ids, _ = cv2.aruco.ArucoDetector(board.getDictionary(), params).detectMarkers(image)
-    seen = [] if ids is None else [int(i) for i in ids.ravel()]
+    seen, corners = detect_aruco(cv2.aruco.ArucoDetector(board.getDictionary(), params), image)
     own = set(jig_ids())
     keep = [k for k, i in enumerate(seen) if i in own]
     found, others = tuple(sorted(seen[k] for k in keep)), tuple(sorted(set(seen) - own))

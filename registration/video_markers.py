@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .aruco_detect import detect_aruco
 from .camera import PinholeCamera
 from .markers import MarkerSet
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
@@ -187,10 +188,8 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
 
 def detect_tags(image: NDArray[np.uint8], *, dictionary: str = "DICT_6X6_250") -> list[tuple[int, NDArray[np.float64]]]:
     """All tags of ``dictionary`` in the image: (id, corners (4, 2)), no camera needed."""
-    corners, ids, _ = _detector(dictionary).detectMarkers(_gray(image))
-    if ids is None:
-        return []
-    return [(int(i), c.reshape(4, 2).astype(np.float64)) for i, c in zip(ids.ravel(), corners)]
+    ids, corners = detect_aruco(_detector(dictionary), _gray(image))
+    return list(zip(ids, corners))
 
 
 def _grid(step_px: float, reach_px: float) -> NDArray[np.float64]:
@@ -278,17 +277,17 @@ class VideoMarkerLocator:
         gray_f: NDArray[np.float32] | None = None
         for name, (fine, coarse) in self._detectors.items():
             if small is not None:
-                corners, ids, _ = coarse.detectMarkers(small)
-                if ids is not None:
-                    pts = np.concatenate([c.reshape(4, 2) for c in corners]) * 2.0 + 0.5
+                ids, corners = detect_aruco(coarse, small)
+                if ids:
+                    pts = np.concatenate(corners) * 2.0 + 0.5
                     refined = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-                    corners = [refined[4 * i : 4 * i + 4].reshape(1, 4, 2) for i in range(len(ids))]
+                    corners = [refined[4 * i : 4 * i + 4].reshape(4, 2).astype(np.float64) for i in range(len(ids))]
             else:
-                corners, ids, _ = fine.detectMarkers(gray)
-            if ids is None:
+                ids, corners = detect_aruco(fine, gray)
+            if not ids:
                 continue
             kept: list[tuple[int, _TagSpec, NDArray[np.float64]]] = []
-            for aruco_id, c in zip(ids.ravel().tolist(), corners):
+            for aruco_id, c in zip(ids, corners):
                 spec = self._specs[name].get(int(aruco_id))
                 if spec is None:
                     ignored.append(int(aruco_id))

@@ -8,6 +8,7 @@ import numpy as np
 import pypdfium2 as pdfium
 import pytest
 
+from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.markers import default_marker_set
 from drillnav.schemas.jig import JIG_SCHEMA
 from drillnav.schemas.markers import read_marker_set
@@ -112,8 +113,8 @@ def test_jig_prints_at_1_to_1_as_its_geometry_says(tmp_path):
     rgb, _ = raster(out)
     assert abs(scale_bar_mm(rgb, "Letter") - 100.0) < 0.1
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    corners, ids, _ = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)).detectMarkers(grey)
-    found = {int(i): c.reshape(4, 2) / PX_PER_MM for i, c in zip(ids.ravel(), corners)}
+    ids, corners = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)), grey)
+    found = {i: c / PX_PER_MM for i, c in zip(ids, corners)}
     geometry = {t["id"]: np.asarray(t["corners_mm"])[:, :2] for t in doc["tags"]}
     assert sorted(found) == sorted(geometry) == list(range(100, 116))
     # Page mm (x right, y down from the top) minus the printed origin = the board frame of the geometry file.

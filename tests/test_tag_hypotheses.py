@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.tag_hypotheses import MIN_CELLS, outline_hypotheses
 from drillnav.registration.tag_search import search_tags
 
@@ -35,8 +36,8 @@ def glared_frame(*, blur_px: float, glare: float, seed: int = 0) -> np.ndarray:
 @pytest.mark.parametrize("glare", [250.0, 400.0])
 def test_a_glared_tag_that_no_detector_reads_is_named_among_the_posed_markers(glare):
     frame = glared_frame(blur_px=3.0, glare=glare)
-    _, ids, _ = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICT))).detectMarkers(frame)
-    assert ids is None, "ArUco reads the glared tag: this frame no longer tests the naming"
+    ids, _ = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICT))), frame)
+    assert ids == [], "ArUco reads the glared tag: this frame no longer tests the naming"
     assert search_tags(frame, dictionary=DICT, wanted=range(250)) == [], "the dictionary-wide search reads it"
     named = outline_hypotheses(frame, dictionary=DICT, wanted=[TAG_ID, 30, 99])
     assert [h.aruco_id for h in named] == [TAG_ID]
@@ -78,9 +79,9 @@ def test_a_real_photographs_tags_are_not_named_as_ids_that_are_not_in_it():
 
 
 def _aruco_corners(gray: np.ndarray) -> list[np.ndarray]:
-    corners, ids, _ = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICT))).detectMarkers(gray)
-    assert ids is not None and sorted(ids.ravel().tolist()) == list(range(17))
-    return [c.astype(np.float64) for c in corners]
+    ids, corners = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICT))), gray)
+    assert sorted(ids) == list(range(17))
+    return corners
 
 
 def test_ids_outside_the_dictionary_are_refused():

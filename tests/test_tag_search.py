@@ -18,6 +18,7 @@ from tag_detection import _true_corners  # noqa: E402  (the twin's true corners,
 
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
@@ -221,8 +222,8 @@ def test_a_tag_with_a_gloved_corner_whose_best_filled_outline_is_not_it_is_found
     slope = 0.55 / 0.55
     glove = [[-0.6, 0.45 - 0.6 * slope], [(1.6 - 0.45) / slope, 1.6], [-0.6, 1.6]]
     gray = _synthetic_frame(corners, aruco_id=23, glove_tag_xy=glove)
-    detected = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)).detectMarkers(gray)[1]
-    assert detected is None, "ArUco reads the gloved tag: this frame no longer tests the search"
+    detected, _ = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)), gray)
+    assert detected == [], "ArUco reads the gloved tag: this frame no longer tests the search"
     found = search_tags(gray, dictionary="DICT_6X6_250", wanted=[5, 23, 40])
     assert [t.aruco_id for t in found] == [23]
     err = np.linalg.norm(found[0].corners_px - corners, axis=1)
@@ -236,8 +237,8 @@ def _search_finds_it_alone(corners, *, aruco_id: int, other_id: int, what: str):
     """Render one tag at ``corners`` (4, 2) (``_synthetic_frame``), check that ArUco does not read it and that the search,
     asked for it and ``other_id``, finds it alone within 1.5 px at every corner. Returns the frame."""
     gray = _synthetic_frame(corners, aruco_id=aruco_id)
-    detected = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)).detectMarkers(gray)[1]
-    assert detected is None, "ArUco reads the tag: this frame no longer tests the search"
+    detected, _ = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)), gray)
+    assert detected == [], "ArUco reads the tag: this frame no longer tests the search"
     found = search_tags(gray, dictionary="DICT_6X6_250", wanted=[aruco_id, other_id])
     assert [t.aruco_id for t in found] == [aruco_id]
     err = np.linalg.norm(found[0].corners_px - corners, axis=1)
