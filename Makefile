@@ -8,10 +8,11 @@ STAMP  := $(VENV)/.installed
 
 # Under a lock, and only if still stale once the lock is held: two `make test` started at once on one machine would
 # otherwise both build the same .venv/ and one would fail on the other's half-written files.
-$(STAMP): pyproject.toml
-	flock .venv.lock sh -c 'if [ ! $(STAMP) -nt pyproject.toml ]; then \
+# The versions installed are those of .ci/constraints.txt: the ones the suite last passed on.
+$(STAMP): pyproject.toml .ci/constraints.txt
+	flock .venv.lock sh -c 'if [ ! $(STAMP) -nt pyproject.toml ] || [ ! $(STAMP) -nt .ci/constraints.txt ]; then \
 	  $(PYTHON) -m venv $(VENV) && $(BIN)/python -m pip install -q --upgrade pip && \
-	  $(BIN)/python -m pip install -q -e ".[test]" && touch $(STAMP); fi'
+	  $(BIN)/python -m pip install -q -c .ci/constraints.txt -e ".[test]" && touch $(STAMP); fi'
 
 run: $(STAMP)
 	$(BIN)/drillnav serve --twin
