@@ -34,9 +34,9 @@ from tag_detection import _true_corners  # noqa: E402
 from drillnav.drivers.sim.anatomy import Corridor
 from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.drivers.sim.scene import PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import register_with_recovery, search_missing_tags
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
@@ -114,7 +114,8 @@ class _Shots:
 
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
-        diagnose: list | None = None, recover: bool = True, measured_markers: bool = False) -> dict:
+        diagnose: list | None = None, recover: bool = True, measured_markers: bool = False,
+        camera_size: tuple[int, int] = (1280, 720), carm: dict | None = None) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
     ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
@@ -123,6 +124,8 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     them before each registration (False: the detector's tags alone, for comparison).
     ``measured_markers``: the product is handed the markers as ``drillnav markers measure`` writes them (the BBs as
     built, in the frame that best fits the design: :meth:`Scene.measured_marker_set`) instead of their design.
+    ``camera_size``: the drill camera's frame (width, height) px, its horizontal field of view as the twin's (76 deg).
+    ``carm``: the C-arm's geometry and detector (``PAPER_CARM``'s keys; None: ``PAPER_CARM``).
     """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
@@ -134,13 +137,14 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(seed)
         for k, (pair, views) in enumerate(_pairs(rng).items()):
-            scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None)
+            scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None,
+                               image_size=camera_size, carm=carm)
             if measured_markers:
                 scene = replace(scene, marker_set=scene.measured_marker_set())
             names = list(scene.views)
             if (seed, pair, fluoro_key) not in shots.fluoro:
                 image_rng = np.random.default_rng([seed, k, 1])
-                shots.fluoro[(seed, pair, fluoro_key)] = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in names}
+                shots.fluoro[(seed, pair, fluoro_key)] = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in names}
             dets = shots.fluoro[(seed, pair, fluoro_key)]
             if (seed, pair, video_key) not in shots.video:
                 shots.video[(seed, pair, video_key)] = camera_shots(scene, seed=seed, k=k, poses=poses)
@@ -244,7 +248,7 @@ def losses(seeds: int, first_seed: int = 3000, *, degradations: Degradations, pa
         for k, (pair, views) in enumerate(_pairs(rng).items()):
             scene = make_scene(seed=seed, views=views, render=False, degradations=degradations, voxel_anatomy=patient if degradations.ct_anatomy else None)
             image_rng = np.random.default_rng([seed, k, 1])
-            dets = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views}
+            dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
             for n, d in dets.items():
                 kind = n if pair != "random" else "random"
                 per_kind.setdefault(kind, []).append(len(d.markers))
@@ -543,7 +547,28 @@ def main() -> None:
                     "them (BBs as built, taken as perfectly measured) instead of markers.json's design")
     ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
                     "registration's prediction (the product before it; for comparison)")
+    ap.add_argument("--camera-size", default="1280x720", help="the drill camera's frame, WIDTHxHEIGHT px (default %(default)s; the "
+                    "horizontal field of view stays 76 deg): the product at a resolution its twin does not default to")
+    ap.add_argument("--detector", default=None, help="the C-arm's detector, ROWSxCOLUMNS@PIXEL_MM (default the reference's "
+                    "976x976@0.304; e.g. 488x488@0.608 for 2x2 binning), its source distances unchanged")
     args = ap.parse_args()
+    carm = None
+    if args.detector is not None:
+        try:
+            size, spacing = args.detector.lower().split("@")
+            rows, columns = (int(v) for v in size.split("x"))
+            pixel_mm = float(spacing)
+            if min(rows, columns) < 64 or not 0.01 <= pixel_mm <= 5.0:
+                raise ValueError
+        except ValueError:
+            ap.error(f"--detector must be ROWSxCOLUMNS@PIXEL_MM (at least 64 px, 0.01-5 mm), got {args.detector!r}")
+        carm = dict(PAPER_CARM, rows=rows, columns=columns, pixel_spacing_mm=(pixel_mm, pixel_mm))
+    try:
+        camera_size = tuple(int(v) for v in args.camera_size.lower().split("x"))
+        if len(camera_size) != 2 or min(camera_size) < 160:
+            raise ValueError
+    except ValueError:
+        ap.error(f"--camera-size must be WIDTHxHEIGHT px, each at least 160, got {args.camera_size!r}")
     seeds, poses = (2, 1) if args.quick else (args.seeds, args.poses)
     if args.degradations is None:
         degradations = Degradations.parse("all")
@@ -561,7 +586,7 @@ def main() -> None:
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
     result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
-                 recover=not args.no_recover, measured_markers=args.measured_markers)
+                 recover=not args.no_recover, measured_markers=args.measured_markers, camera_size=camera_size, carm=carm)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)
@@ -572,7 +597,7 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick:
+    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None:  # the docs table is the twin's own devices
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
@@ -591,7 +616,8 @@ def main() -> None:
     for s in per_deg or []:
         if s["n"]:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
-    report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers, summary=summary,
+    report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
+           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", summary=summary,
            per_degradation=per_deg)
 
 

@@ -37,7 +37,7 @@ from accuracy import CT, _pairs, camera_frames, load_patient  # noqa: E402  (the
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, _perturbed_axis, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro
 
@@ -53,7 +53,7 @@ def _shots(seed: int, k: int, pair: str, views: str, poses: int, deg: Degradatio
         dets, frames = pickle.loads(path.read_bytes())
         return scene, dets, frames
     image_rng = np.random.default_rng([seed, k, 1])
-    dets = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views}
+    dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
     frames = camera_frames(scene, seed=seed, k=k, poses=poses)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

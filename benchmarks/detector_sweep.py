@@ -27,7 +27,7 @@ import pydicom
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.carm import CArmView
-from drillnav.registration.fluoro_markers import detect_markers, magnification_range
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.kcr import render_marker_drr
 from drillnav.registration.marker_pose import register_markers
 
@@ -74,7 +74,7 @@ def run_setting(radiograph: np.ndarray, setting: dict, seeds: range) -> dict:
             dets = []
             for view in views:
                 image = shot(radiograph, scene, view, rng, quanta=p["quanta"], scatter=p["scatter"], blur_px=p["blur_px"], anatomy=p["anatomy"])
-                det = detect_markers(image, scene.marker_set, pixel_spacing_mm=view.pixel_spacing_mm[1], magnification_range=magnification_range(view))
+                det = detect_in_view(image, view, scene.marker_set)
                 dets.append(det)
                 ids, truth = {m.marker_id for m in det.markers}, set(scene.carm_from_marker)
                 in_field, identified, false_ids = in_field + len(truth), identified + len(ids & truth), false_ids + len(ids - truth)

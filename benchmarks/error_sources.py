@@ -49,7 +49,7 @@ from tag_detection import _true_corners  # noqa: E402
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.markers import MarkerSet
 from drillnav.registration.transforms import apply
@@ -138,7 +138,7 @@ def run(*, seeds: int, first_seed: int, poses: int, n_views: int) -> list[dict]:
             scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient)
             names = list(scene.views)
             image_rng = np.random.default_rng([seed, k, 1])
-            dets = {n: detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in names}
+            dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in names}
             frames = camera_shots(scene, seed=seed, k=k, poses=poses)
             for vs in ([names] if n_views == 2 else [[n] for n in names]):
                 rows += [{"seed": seed, "pair": pair, **r} for r in scene_rows(scene, dets, frames, vs)]

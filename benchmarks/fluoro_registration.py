@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
 
 from drillnav.drivers.sim.scene import make_scene
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.overlay import draw_axis, draw_detections, to_display
 from drillnav.registration.video_fluoro import register_video_to_fluoro
@@ -31,7 +31,7 @@ def main() -> None:
         dets = []
         for n in names:
             t = time.perf_counter()
-            dets.append(detect_markers(scene.fluoro_log[n], scene.marker_set))
+            dets.append(detect_in_view(scene.fluoro_log[n], scene.views[n], scene.marker_set))
             feat.append(time.perf_counter() - t)
         t = time.perf_counter()
         poses1 = register_markers(dets[:1], [scene.views[names[0]]], scene.marker_set)

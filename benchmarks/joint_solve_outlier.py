@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
 
 from drillnav.drivers.sim.scene import make_scene, render_fluoro
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration
 from drillnav.registration.video_fluoro import register_video_to_fluoro
@@ -43,7 +43,7 @@ def main() -> None:
     for seed in args.seeds:
         scene = make_scene(seed=seed, render=False)
         rng = np.random.default_rng(seed)
-        dets = [detect_markers(render_fluoro(scene, n, rng), scene.marker_set) for n in scene.views]
+        dets = [detect_in_view(render_fluoro(scene, n, rng), scene.views[n], scene.marker_set) for n in scene.views]
         poses = register_markers(dets, list(scene.views.values()), scene.marker_set)
         cal = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
         video = cal.locator.locate(scene.render_camera(rng, carm_from_drill=scene.drill_pose_towards(rng)))

@@ -41,7 +41,7 @@ from accuracy import CT, _pairs, load_patient  # noqa: E402
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import JOINT_PERIOD_NS, LiveCalibration, track_frame
 from drillnav.service.joint_worker import JointSolveWorker
@@ -53,7 +53,7 @@ def sequence(scene, *, seed: int, k: int, frames: int, worker: JointSolveWorker 
     """One freehand sequence of ``scene`` (seeded by seed and view pair k) through ``track_frame`` (or ``worker``'s
     ``track``, as the node runs it): a dict per frame."""
     image_rng = np.random.default_rng([seed, k, 1])
-    dets = [detect_markers(render_fluoro(scene, n, image_rng), scene.marker_set) for n in scene.views]
+    dets = [detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views]
     poses = register_markers(dets, list(scene.views.values()), scene.marker_set)
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
     pose_rng, camera_rng = np.random.default_rng([seed, k, 2]), np.random.default_rng([seed, k, 3])

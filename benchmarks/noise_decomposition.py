@@ -35,7 +35,7 @@ from accuracy import CT, load_patient  # noqa: E402  (the study's patient)
 
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import make_scene, render_fluoro
-from drillnav.registration.fluoro_markers import detect_markers
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.transforms import apply, invert
 from drillnav.registration.video_markers import VideoMarkerLocator
 
@@ -91,7 +91,7 @@ def fluoro_errors(scene, rng_seed) -> dict[str, list]:
     image_rng = np.random.default_rng([rng_seed, 1])
     out = {"shift": [], "scale": [], "rest": [], "dof": [], "manufacturing": [], "mfg_shift": []}
     for name, view in scene.views.items():
-        dets = detect_markers(render_fluoro(scene, name, image_rng), scene.marker_set)
+        dets = detect_in_view(render_fluoro(scene, name, image_rng), scene.views[name], scene.marker_set)
         for m in dets.markers:
             if m.marker_id not in scene.carm_from_marker:
                 continue

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from .carm import CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
 
-__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_markers", "magnification_range"]
+__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -168,6 +168,12 @@ def detect_markers(
         if (level == 0 and len(result.markers) > 1) or (result.markers and all(r.reason.startswith(_NOT_CONTRAST) for r in found.rejected)):
             break
     return result
+
+
+def detect_in_view(image_log: NDArray[np.float32], view: CArmView, marker_set: MarkerSet) -> FluoroDetections:
+    """:func:`detect_markers` in one view as the product runs it: at the view's own pixel size, with the markers'
+    magnifications that its geometry allows (:func:`magnification_range`). Every caller with a view uses this."""
+    return detect_markers(image_log, marker_set, pixel_spacing_mm=float(view.pixel_spacing_mm[1]), magnification_range=magnification_range(view))
 
 
 def _coarsened(found: FluoroDetections, factor: int) -> FluoroDetections:

@@ -26,7 +26,7 @@ def _measure(args: argparse.Namespace) -> int:
 
     from drillnav.drivers.fluoro_dicom import read_fluoro
     from drillnav.registration.errors import DegenerateInput
-    from drillnav.registration.fluoro_markers import detect_markers, magnification_range
+    from drillnav.registration.fluoro_markers import detect_in_view
     from drillnav.registration.marker_as_built import measure_as_built
     from drillnav.registration.marker_pose import register_markers
     from drillnav.registration.markers import BB, MarkerSet
@@ -39,7 +39,7 @@ def _measure(args: argparse.Namespace) -> int:
     images = [img for f in args.fluoro for img in read_fluoro(f)]
     if len(images) < 2:
         raise CliError(f"{len(images)} fluoroscopy image(s): measuring the markers needs at least 2 shots from different angles")
-    detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1], magnification_range=magnification_range(img.view))
+    detections = [detect_in_view(img.pixels_log, img.view, marker_set)
                   for img in images]
     poses = register_markers(detections, [img.view for img in images], marker_set)
     measured = {}

@@ -41,7 +41,7 @@ from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.carm import CArmView
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import FluoroDetections, detect_markers, magnification_range
+from drillnav.registration.fluoro_markers import FluoroDetections, detect_in_view
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import MarkerPose, register_markers
 from drillnav.registration.markers import MarkerSet
@@ -341,7 +341,7 @@ class RegistrationNode:
         detected = 0
         for name, shot in newest.items():
             try:
-                det = detect_markers(shot.image_log, self.marker_set, pixel_spacing_mm=shot.carm_view.pixel_spacing_mm[1], magnification_range=magnification_range(shot.carm_view))
+                det = detect_in_view(shot.image_log, shot.carm_view, self.marker_set)
             except (DrillnavError, ValueError) as exc:
                 self.counters.shots_failed += 1
                 self._event("error", f"shot '{name}' refused: {exc}")

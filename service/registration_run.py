@@ -14,7 +14,7 @@ from drillnav.drivers.ct_volume import read_ct
 from drillnav.drivers.fluoro_dicom import read_fluoro
 from drillnav.drivers.image_files import read_image
 from drillnav.registration.errors import MarkersNotFound
-from drillnav.registration.fluoro_markers import detect_markers, magnification_range
+from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.overlay import annotate, draw_axis, draw_detections, mask_markers, to_display
 from drillnav.registration.pipeline import LiveCalibration, track_frame
@@ -47,7 +47,7 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["video_markers_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    detections = [detect_markers(img.pixels_log, marker_set, pixel_spacing_mm=img.view.pixel_spacing_mm[1], magnification_range=magnification_range(img.view))
+    detections = [detect_in_view(img.pixels_log, img.view, marker_set)
                   for img in images]
     timings["fluoro_features_s"] = time.perf_counter() - t
     # One is enough: the camera's markers claim the others' BBs (video_claims); a ring matched only loosely (a candidate,

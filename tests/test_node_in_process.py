@@ -176,7 +176,7 @@ def test_a_view_whose_markers_all_wait_on_the_camera_registers_and_its_frames_gi
     from loose_scene import VIEW, loose_shot
 
     scene, bare, ring_id, others, image, carm_from_drill = loose_shot()
-    monkeypatch.setattr(node_module, "detect_markers", lambda *args, **kwargs: bare)
+    monkeypatch.setattr(node_module, "detect_in_view", lambda *args, **kwargs: bare)
     shot = msg.FluoroShot.build(scene.fluoro_log[VIEW], scene.views[VIEW], stamp_ns=time.time_ns(), view_name=VIEW)
     published: list[dict] = []
     with node_and_axes(scene) as (pub, node, axes):

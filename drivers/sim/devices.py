@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drillnav.drivers.sim import anatomy
 from drillnav.drivers.sim.dicom_io import write_xa
-from drillnav.drivers.sim.scene import PAPER_CARM, Scene, render_fluoro
+from drillnav.drivers.sim.scene import Scene, render_fluoro
 from drillnav.drivers.webcam import CameraUnavailable
 from drillnav.registration.transforms import make_transform
 from drillnav.schemas.projection import write_projection
@@ -222,8 +222,9 @@ class TwinCArm:
         image = render_fluoro(self.scene, view_name, self._rng)
         a, b = self.scene.view_angles[view_name]
         tmp = self.folder / f".{view_name}-{self._n}.dcm.part"
-        write_xa(tmp, image, primary_deg=a, secondary_deg=b, source_to_detector_mm=PAPER_CARM["source_to_detector_mm"],
-                 source_to_isocenter_mm=PAPER_CARM["source_to_isocenter_mm"], pixel_spacing_mm=PAPER_CARM["pixel_spacing_mm"],
+        carm = self.scene.carm
+        write_xa(tmp, image, primary_deg=a, secondary_deg=b, source_to_detector_mm=carm["source_to_detector_mm"],
+                 source_to_isocenter_mm=carm["source_to_isocenter_mm"], pixel_spacing_mm=carm["pixel_spacing_mm"],
                  study_uid="1.2.826.0.1.3680043.8.498.1", series_uid="1.2.826.0.1.3680043.8.498.2", instance_number=self._n,
                  image_intensifier=self.scene.degradations.ii_distortion)
         final = self.folder / f"{view_name}-{self._n:04d}.dcm"

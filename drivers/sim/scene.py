@@ -11,6 +11,7 @@ tip rests on the bone at the entry when the shot is taken.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -97,6 +98,7 @@ class Scene:
     table_y_mm: tuple[float, float] = TABLE_Y_MM
     degradations: Degradations = field(default_factory=Degradations)  # what the operating room adds (default: none)
     hardware: Hardware = ()                    # surgical metal in the field (frame C), with ``degradations.hardware``
+    carm: Mapping[str, object] = field(default_factory=lambda: dict(PAPER_CARM))  # the C-arm's geometry and detector (PAPER_CARM's keys)
 
     def measured_marker_set(self) -> MarkerSet:
         """The marker set a site writes with ``drillnav markers measure``, taken as perfectly measured: each marker as
@@ -339,8 +341,12 @@ def make_scene(
     kwire: bool = True,
     voxel_anatomy: VoxelAnatomy | None = None,
     degradations: Degradations | None = None,
+    carm: Mapping[str, object] | None = None,
 ) -> Scene:
     """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only).
+
+    ``image_size``: the drill camera's frame (width, height) px. ``carm``: the C-arm's geometry and detector as
+    :data:`PAPER_CARM`'s keys (None: :data:`PAPER_CARM`, the reference's C-arm).
 
     ``voxel_anatomy``: a real CT as the patient, with its planned trajectory (``corridor`` is then unused).
     ``degradations``: what an operating room adds (``drivers/sim/degradations.py``); None: none.
@@ -387,7 +393,7 @@ def make_scene(
     # The twin's C-arm with ii_distortion is an image intensifier without a dewarp calibration: its views say so
     # (as its DICOM does, X-Ray Receptor Type), and the product estimates their distortion.
     ii_sigma = IMAGE_INTENSIFIER_DISTORTION_PX if degradations.ii_distortion else 0.0
-    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, distortion_sigma_px=ii_sigma, **PAPER_CARM)
+    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, distortion_sigma_px=ii_sigma, **(PAPER_CARM if carm is None else carm))
                    for name, (a, b) in view_angles.items()}
     scene = Scene(
         seed=seed,
@@ -408,6 +414,7 @@ def make_scene(
         degradations=degradations,
         hardware=make_hardware(np.random.default_rng([seed, 5]), site_carm_mm=apply(carm_from_ct, skin), anterior_carm=carm_from_ct[:3, :3] @ skin_normal)
         if degradations.hardware else (),
+        carm=dict(PAPER_CARM if carm is None else carm),
     )
     if not render:
         return scene

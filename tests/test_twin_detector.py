@@ -1,0 +1,34 @@
+"""The twin's C-arm on another detector than the reference's (2x2 binning: 488 x 488 px of 0.608 mm): its DICOM says
+so, and the product reads and registers the markers from it as from the full detector."""
+
+import numpy as np
+import pydicom
+
+from drillnav.drivers.fluoro_dicom import read_fluoro
+from drillnav.drivers.sim.devices import TwinCArm
+from drillnav.drivers.sim.scene import PAPER_CARM, make_scene
+from drillnav.registration.fluoro_markers import detect_in_view
+from drillnav.registration.marker_pose import register_markers
+
+BINNED = dict(PAPER_CARM, rows=488, columns=488, pixel_spacing_mm=(0.608, 0.608))
+
+
+def test_a_binned_detector_is_written_read_and_registered(tmp_path):
+    scene = make_scene(seed=5, render=False, carm=BINNED)
+    assert scene.carm == BINNED
+    carm = TwinCArm(scene=scene, folder=tmp_path)
+    files = {view: carm.shoot(view) for view in scene.views}
+    images = {}
+    for view, path in files.items():
+        ds = pydicom.dcmread(str(path), stop_before_pixels=True)
+        assert (ds.Rows, ds.Columns) == (488, 488)
+        assert [float(v) for v in ds.ImagerPixelSpacing] == [0.608, 0.608]
+        images[view] = read_fluoro(path)[0]
+        assert images[view].pixels_log.shape == (488, 488)
+        centre = scene.carm_from_marker[scene.marker_set.ids[0]][:3, 3][None]
+        assert np.abs(images[view].view.project(centre) - scene.views[view].project(centre)).max() < 0.5
+    dets = [detect_in_view(images[v].pixels_log, images[v].view, scene.marker_set) for v in scene.views]
+    poses = register_markers(dets, [images[v].view for v in scene.views], scene.marker_set)
+    assert len(poses) >= 4
+    for p in poses:
+        assert np.linalg.norm(p.position_carm_mm - scene.carm_from_marker[p.marker_id][:3, 3]) < 1.0, p.marker_id
