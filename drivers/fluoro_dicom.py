@@ -24,7 +24,7 @@ import pydicom
 from numpy.typing import NDArray
 from pydicom.errors import InvalidDicomError
 
-from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
+from drillnav.registration.carm import CArmView, intensifier_distortion_sigma_px
 from drillnav.registration.errors import DrillnavError
 from drillnav.schemas.projection import read_projection
 
@@ -63,7 +63,7 @@ class FluoroImage:
     view_name: str  # from the positioner angles (e.g. "p+0s-25"), else the file name
 
 
-def _intensifier_sigma_px(ds) -> float:
+def _intensifier_sigma_px(ds, pixel_spacing_mm: tuple[float, ...]) -> float:
     """The distortion prior of an image from an image intensifier, 0 from a flat panel.
 
     An intensifier says so in X-Ray Receptor Type (0018,9420) = IMG_INTENSIFIER (enhanced XA/XRF) or, in the
@@ -73,7 +73,8 @@ def _intensifier_sigma_px(ds) -> float:
     """
     receptor = str(getattr(ds, "XRayReceptorType", "") or "").upper()
     if receptor == "IMG_INTENSIFIER" or (not receptor and getattr(ds, "IntensifierSize", None) not in (None, "")):
-        return IMAGE_INTENSIFIER_DISTORTION_PX
+        # A size in mm at the detector: in this image's pixels (fewer on a binned read-out).
+        return intensifier_distortion_sigma_px(pixel_spacing_mm[-1])  # the column spacing, as the detector's
     return 0.0
 
 
@@ -97,13 +98,14 @@ def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> 
     if position not in SUPINE:
         raise DicomGeometryMissing(f"{path.name}: PatientPosition {position} is not supported without a calibrated projection matrix (supine HFS/FFS only)")
     try:
+        spacing = tuple(float(v) for v in ds.ImagerPixelSpacing)
         view = CArmView.from_positioner(
-            distortion_sigma_px=_intensifier_sigma_px(ds),
+            distortion_sigma_px=_intensifier_sigma_px(ds, spacing),
             primary_deg=float(ds.PositionerPrimaryAngle),
             secondary_deg=float(ds.PositionerSecondaryAngle),
             source_to_detector_mm=float(ds.DistanceSourceToDetector),
             source_to_isocenter_mm=float(ds.DistanceSourceToPatient),
-            pixel_spacing_mm=tuple(float(v) for v in ds.ImagerPixelSpacing),
+            pixel_spacing_mm=spacing,
             rows=rows,
             columns=cols,
         )

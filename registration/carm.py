@@ -26,6 +26,7 @@ from .transforms import check_points, invert, make_transform
 __all__ = [
     "CArmView",
     "IMAGE_INTENSIFIER_DISTORTION_PX",
+    "intensifier_distortion_sigma_px",
     "intensifier_shift_px",
     "positioner_rotation",
     "triangulate",
@@ -62,6 +63,16 @@ def positioner_rotation(primary_deg: float, secondary_deg: float) -> NDArray[np.
 # (3 mm at 0.3 mm/px) at the field's corner is the 1-sigma size assumed for each of the two terms when a view
 # comes from an intensifier without a dewarp calibration. A flat panel (and a dewarped image) has none.
 IMAGE_INTENSIFIER_DISTORTION_PX = 10.0
+INTENSIFIER_REFERENCE_PIXEL_MM = 0.304  # the detector pixel IMAGE_INTENSIFIER_DISTORTION_PX is stated in
+
+
+def intensifier_distortion_sigma_px(pixel_spacing_mm: float) -> float:
+    """:data:`IMAGE_INTENSIFIER_DISTORTION_PX` (a size in mm at the detector) in pixels of ``pixel_spacing_mm``:
+    10 px at 0.304 mm, 5 px on the same intensifier read out binned 2 x 2."""
+    p = float(pixel_spacing_mm)
+    if not (np.isfinite(p) and p > 0):
+        raise ValueError(f"pixel spacing must be a positive number of mm, got {pixel_spacing_mm}")
+    return IMAGE_INTENSIFIER_DISTORTION_PX * INTENSIFIER_REFERENCE_PIXEL_MM / p
 
 
 def intensifier_shift_px(uv_px: NDArray[np.float64], center_px: NDArray[np.float64], corner_radius_px: float,

@@ -95,12 +95,14 @@ def test_a_flat_panel_view_adds_no_distortion(scene):
 
 
 @pytest.mark.parametrize("intensifier", [True, False])
-def test_the_dicom_says_which_detector(tmp_path, intensifier):
+@pytest.mark.parametrize("pixel_mm", [0.304, 0.608])
+def test_the_dicom_says_which_detector(tmp_path, intensifier, pixel_mm):
+    """An intensifier's distortion prior is a size at the detector: 10 px of 0.304 mm, 5 px read out binned 2 x 2."""
     path = write_xa(tmp_path / "shot.dcm", np.full((64, 64), 2.0, np.float32), primary_deg=0, secondary_deg=-25, source_to_detector_mm=1164,
-                    source_to_isocenter_mm=624, pixel_spacing_mm=(0.304, 0.304), study_uid="1.2.3", series_uid="1.2.3.4", instance_number=1,
+                    source_to_isocenter_mm=624, pixel_spacing_mm=(pixel_mm, pixel_mm), study_uid="1.2.3", series_uid="1.2.3.4", instance_number=1,
                     image_intensifier=intensifier)
     (image,) = read_fluoro(path)
-    assert image.view.distortion_sigma_px == (IMAGE_INTENSIFIER_DISTORTION_PX if intensifier else 0.0)
+    assert image.view.distortion_sigma_px == pytest.approx(IMAGE_INTENSIFIER_DISTORTION_PX * 0.304 / pixel_mm if intensifier else 0.0)
     # A calibrated projection JSON says it itself (0 when absent: a dewarped image or a flat panel).
     write_projection(tmp_path / "p.json", image.view)
     assert read_projection(tmp_path / "p.json").distortion_sigma_px == image.view.distortion_sigma_px

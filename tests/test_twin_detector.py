@@ -32,3 +32,15 @@ def test_a_binned_detector_is_written_read_and_registered(tmp_path):
     assert len(poses) >= 4
     for p in poses:
         assert np.linalg.norm(p.position_carm_mm - scene.carm_from_marker[p.marker_id][:3, 3]) < 1.0, p.marker_id
+
+
+def test_the_binned_intensifier_states_its_distortion_in_its_own_pixels():
+    """The twin's intensifier bends the image by the same millimetres on either read-out: its views state the prior
+    as 10 px of 0.304 mm or 5 px of 0.608 mm."""
+    from drillnav.drivers.sim.degradations import Degradations
+
+    deg = Degradations.parse("ii_distortion")
+    full = make_scene(seed=5, render=False, degradations=deg)
+    binned = make_scene(seed=5, render=False, degradations=deg, carm=BINNED)
+    for name in full.views:
+        assert full.views[name].distortion_sigma_px == 10.0 and binned.views[name].distortion_sigma_px == 5.0

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from drillnav.registration.axis_uncertainty import AxisUncertainty
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY
-from drillnav.registration.carm import IMAGE_INTENSIFIER_DISTORTION_PX, CArmView
+from drillnav.registration.carm import CArmView, intensifier_distortion_sigma_px
 from drillnav.registration.line import Line3D
 from drillnav.registration.horn import absolute_orientation
 from drillnav.registration.markers import BB, MarkerDesign, MarkerSet, default_marker_set
@@ -318,11 +318,14 @@ def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dos
     if deg.collimator:
         # Lead at the source stops the primary (no hardening model needed for it), so the shadow also scatters less.
         primary *= np.exp(-LEAD_LINE_INTEGRAL * collimator_mask(rng, view.rows, view.columns))
-    scatter = 0.12 * cv2.GaussianBlur(primary, (0, 0), 35.0)
+    # Sizes in the detector plane are stated in the reference detector's pixels (PAPER_CARM): a coarser detector
+    # sees the same millimetres in fewer of its pixels.
+    per_px = PAPER_CARM["pixel_spacing_mm"][1] / view.pixel_spacing_mm[1]
+    scatter = 0.12 * cv2.GaussianBlur(primary, (0, 0), 35.0 * per_px)
     counts = rng.poisson(primary + scatter).astype(np.float64)
     if deg.ii_distortion:
         # The intensifier's electron optics bend the image after the input phosphor caught the quanta.
-        map_x, map_y = ii_distortion_maps(view.rows, view.columns, pincushion_px=deg.ii_pincushion_px, s_px=deg.ii_s_px)
+        map_x, map_y = ii_distortion_maps(view.rows, view.columns, pincushion_px=deg.ii_pincushion_px * per_px, s_px=deg.ii_s_px * per_px)
         counts = cv2.remap(counts, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     counts = cv2.GaussianBlur(counts, (0, 0), 0.6)
     return (-np.log(np.maximum(counts, 0.5) / dose_quanta)).astype(np.float32)
@@ -392,8 +395,9 @@ def make_scene(
     carm_from_drill = _drill_pose(rng, target, carm_from_ct, offset_mm=3.0, tilt_deg=3.0, standoff_mm=290.0)
     # The twin's C-arm with ii_distortion is an image intensifier without a dewarp calibration: its views say so
     # (as its DICOM does, X-Ray Receptor Type), and the product estimates their distortion.
-    ii_sigma = IMAGE_INTENSIFIER_DISTORTION_PX if degradations.ii_distortion else 0.0
-    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, distortion_sigma_px=ii_sigma, **(PAPER_CARM if carm is None else carm))
+    carm = dict(PAPER_CARM if carm is None else carm)
+    ii_sigma = intensifier_distortion_sigma_px(float(carm["pixel_spacing_mm"][1])) if degradations.ii_distortion else 0.0
+    scene_views = {name: CArmView.from_positioner(primary_deg=a, secondary_deg=b, distortion_sigma_px=ii_sigma, **carm)
                    for name, (a, b) in view_angles.items()}
     scene = Scene(
         seed=seed,
@@ -414,7 +418,7 @@ def make_scene(
         degradations=degradations,
         hardware=make_hardware(np.random.default_rng([seed, 5]), site_carm_mm=apply(carm_from_ct, skin), anterior_carm=carm_from_ct[:3, :3] @ skin_normal)
         if degradations.hardware else (),
-        carm=dict(PAPER_CARM if carm is None else carm),
+        carm=carm,
     )
     if not render:
         return scene
