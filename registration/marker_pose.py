@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .carm import CArmView
-from .fluoro_markers import FluoroDetections
+from .fluoro_markers import WORKING_PIXEL_MM as REFERENCE_PIXEL_MM, FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
@@ -415,6 +415,9 @@ def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, sear
     """
     if len(blobs_px) < min_bbs:
         return None
+    # The sizes are the reference detector's pixels (0.304 mm): on a coarser detector the same millimetres are fewer pixels.
+    per_px = REFERENCE_PIXEL_MM / float(view.pixel_spacing_mm[1])
+    search_px, tol_px = search_px * per_px, tol_px * per_px
     pred = view.project(apply(carm_from_marker, design_bbs_mm))
     shifts = (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2)
     if slide_px is None:
