@@ -26,6 +26,7 @@ from .transforms import check_points, invert, make_transform
 __all__ = [
     "CArmView",
     "IMAGE_INTENSIFIER_DISTORTION_PX",
+    "REFERENCE_PIXEL_MM",
     "intensifier_distortion_sigma_px",
     "intensifier_shift_px",
     "positioner_rotation",
@@ -63,7 +64,9 @@ def positioner_rotation(primary_deg: float, secondary_deg: float) -> NDArray[np.
 # (3 mm at 0.3 mm/px) at the field's corner is the 1-sigma size assumed for each of the two terms when a view
 # comes from an intensifier without a dewarp calibration. A flat panel (and a dewarped image) has none.
 IMAGE_INTENSIFIER_DISTORTION_PX = 10.0
-INTENSIFIER_REFERENCE_PIXEL_MM = 0.304  # the detector pixel IMAGE_INTENSIFIER_DISTORTION_PX is stated in
+# The reference's detector pixel (mm): the fluoroscopy side's sizes in pixels (the marker detector's kernels, a
+# claim's search and tolerance, the intensifier's prior) are stated in it and converted by a view's own spacing.
+REFERENCE_PIXEL_MM = 0.304
 
 
 def intensifier_distortion_sigma_px(pixel_spacing_mm: float) -> float:
@@ -72,7 +75,7 @@ def intensifier_distortion_sigma_px(pixel_spacing_mm: float) -> float:
     p = float(pixel_spacing_mm)
     if not (np.isfinite(p) and p > 0):
         raise ValueError(f"pixel spacing must be a positive number of mm, got {pixel_spacing_mm}")
-    return IMAGE_INTENSIFIER_DISTORTION_PX * INTENSIFIER_REFERENCE_PIXEL_MM / p
+    return IMAGE_INTENSIFIER_DISTORTION_PX * REFERENCE_PIXEL_MM / p
 
 
 def intensifier_shift_px(uv_px: NDArray[np.float64], center_px: NDArray[np.float64], corner_radius_px: float,

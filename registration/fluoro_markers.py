@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .carm import CArmView
+from .carm import REFERENCE_PIXEL_MM, CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
 
 __all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range"]
@@ -267,7 +267,7 @@ MAGNIFICATION_SPAN = (0.65, 1.18)
 # round(spacing / WORKING_PIXEL_MM) times finer. benchmarks/detector_sweep.py, binned 2x2: 28 -> 55 of 60 markers,
 # with the known-component DRR's wire (a whole number of pixels wide, faint at 0.61 mm); the twin's own shots binned
 # 2x2 lost little before (74 -> 76 of 90, docs/identity_and_error.md).
-WORKING_PIXEL_MM = 0.304
+WORKING_PIXEL_MM = REFERENCE_PIXEL_MM
 # The wire is traced by hysteresis: pixels over WIRE_HYSTERESIS x its threshold (and over 2.5 sigma of noise) that
 # connect to one over the threshold. A 0.8 mm wire is a thin ridge as noisy as the pixels under it; with no detector
 # blur, or dense anatomy behind it, a single threshold broke each ring into arcs that fit flat ellipses ("edge-on")

@@ -28,8 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .carm import CArmView
-from .fluoro_markers import WORKING_PIXEL_MM as REFERENCE_PIXEL_MM, FluoroDetections
+from .carm import REFERENCE_PIXEL_MM, CArmView
+from .fluoro_markers import FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
@@ -409,13 +409,14 @@ def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, sear
     projected pattern in another view: each (design BB, blob) pair proposes a shift, the one that matches
     most BBs wins. None when fewer than ``min_bbs`` match.
 
-    slide_px : (2,) the farthest the pattern may slide along one image direction (px, in either sense), on
+    search_px, tol_px : in the reference detector's pixels (:data:`.carm.REFERENCE_PIXEL_MM`), so the same
+        millimetres on any detector; converted to ``view``'s own here.
+    slide_px : (2,) in ``view``'s own pixels: the farthest the pattern may slide along one image direction (px, in either sense), on
         top of ``search_px`` across it: the image in this view of the pose's depth uncertainty along another
         view's beam (an epipolar line). None: ``search_px`` in every direction.
     """
     if len(blobs_px) < min_bbs:
         return None
-    # The sizes are the reference detector's pixels (0.304 mm): on a coarser detector the same millimetres are fewer pixels.
     per_px = REFERENCE_PIXEL_MM / float(view.pixel_spacing_mm[1])
     search_px, tol_px = search_px * per_px, tol_px * per_px
     pred = view.project(apply(carm_from_marker, design_bbs_mm))
