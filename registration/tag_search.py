@@ -17,7 +17,11 @@ beyond it, and dropping that stretch's side instead of the glove's fills better)
 2. its code is read at each of its four rotations (:func:`.tag_recovery.read_code`) and judged over every id of
    the dictionary at every rotation: accepted only when at least ``min_cells`` cells are read, at least
    ``min_agreement`` of them agree with the best (id, rotation), no other (id, rotation) comes within
-   ``min_margin_cells`` of it, and that id is one of those asked for.
+   ``min_margin_cells`` of it, and that id is one of those asked for. Where an id from outside the marker set comes
+   that near (a highlight leaves 20-odd cells, and among 250 ids x 4 rotations one often agrees in all but two or
+   three), the caller's ``rivals`` (the marker set's ids in that dictionary: the only tags in the field) judge
+   instead: the best (id, rotation) still agrees in more cells than any other of the dictionary, and every rival
+   at each rotation, and the best id at its other three, in at least ``min_margin_cells`` fewer.
 
 A tag partly out of the frame is looked for on what of it is in the frame (its edges and cells in the frame). Its
 dark region runs along the frame's edge, and the ends of that stretch are kept as vertices of the simplified hull
@@ -26,8 +30,9 @@ then puts the corner beyond the edge where the sides' lines cross, as for a bite
 corner beyond the edge are added (the rest would only crowd the candidates: the frame's background touches the edge
 in many places).
 
-No place vouches for a tag found this way, so the identity rule is the dictionary-wide one of
-:mod:`.tag_recovery` (the fewer-cells rule among the marker set's tags needs a predicted place and is not used).
+No place vouches for a tag found this way, so it needs the dictionary-wide rule's 20 cells read even when the marker
+set's ids judge it (the fewer-cells rule of :mod:`.tag_recovery`, 8 cells among the marker set's tags, needs a
+predicted place and is not used).
 
 Pure math: numpy and OpenCV's image functions.
 """
@@ -210,10 +215,12 @@ def tag_candidates(gray: NDArray[np.uint8], *, min_side_px: float = 24.0, max_ca
 
 
 def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, dictionary: str, wanted: Sequence[int], min_cells: int = 20,
-                  min_agreement: float = 0.9, min_margin_cells: int = 4, min_contrast: float = 30.0, partial: bool = False) -> FoundTag | None:
+                  min_agreement: float = 0.9, min_margin_cells: int = 4, min_contrast: float = 30.0, partial: bool = False,
+                  rivals: Sequence[int] | None = None) -> FoundTag | None:
     """The tag whose fitted corners (4, 2) px (OpenCV winding, any rotation) are given, when its code names one of
     ``wanted`` (ArUco ids of ``dictionary``) by the rule of the module docstring; None otherwise. ``partial``: read
-    on the cells in the frame (:func:`.tag_recovery.read_code`)."""
+    on the cells in the frame (:func:`.tag_recovery.read_code`). ``rivals``: the ArUco ids that may lie in the field
+    (the marker set's, in ``dictionary``); None: any id of the dictionary (the dictionary-wide rule alone)."""
     codes = dictionary_codes(dictionary)
     flat = codes.reshape(len(codes), -1)
     agree = []
@@ -230,19 +237,27 @@ def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, di
     mine = int(table[k, best])
     table[k, best] = -1
     runner_up = int(table.max())
-    if best not in set(int(i) for i in wanted) or mine < min_agreement * n_read or mine - runner_up < min_margin_cells:
+    if best not in set(int(i) for i in wanted) or mine < min_agreement * n_read or runner_up >= mine:
         return None
+    if mine - runner_up < min_margin_cells:
+        # An id from outside the set (or this id at another rotation) comes near: judged among those that may lie here.
+        if rivals is None:
+            return None
+        near = table[:, sorted({int(r) for r in rivals} | {int(best)})]
+        if mine - int(near.max()) < min_margin_cells:
+            return None
     return FoundTag(aruco_id=int(best), corners_px=np.roll(corners, -int(k), axis=0), cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up)
 
 
 def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[int], exclude_px: Sequence[NDArray[np.float64]] = (),
-                tolerance_px: float = 6.0, half_above_px: int = 800) -> list[FoundTag]:
+                tolerance_px: float = 6.0, half_above_px: int = 800, rivals: Sequence[int] | None = None) -> list[FoundTag]:
     """The tags of ``wanted`` (ArUco ids of ``dictionary``) found in a grayscale frame (H, W) uint8 without a prediction.
 
     ``exclude_px``: (4, 2) corners of tags already found; a candidate whose centre lies on one is skipped.
     ``tolerance_px``: how far each fitted edge may lie from the candidate's outline (the outline comes from a
     half-resolution threshold, and a bite's corner from two edges' extensions). ``half_above_px``: see
-    :func:`tag_candidates`. One tag per id.
+    :func:`tag_candidates`. ``rivals``: the ArUco ids that may lie in the field (the marker set's, in
+    ``dictionary``; see :func:`identify_quad`); None: the dictionary-wide rule alone. One tag per id.
     """
     wanted = [int(i) for i in wanted]
     if not wanted:
@@ -261,7 +276,8 @@ def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[in
         edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px, partial=True)
         if not edges.accepted:
             continue
-        tag = identify_quad(gray_f, edges.corners_px, dictionary=dictionary, wanted=[i for i in wanted if i not in found], partial=True)
+        tag = identify_quad(gray_f, edges.corners_px, dictionary=dictionary, wanted=[i for i in wanted if i not in found], partial=True,
+                           rivals=rivals)
         if tag is not None:
             found[tag.aruco_id] = tag
             taken.append(tag.corners_px.astype(np.float32).reshape(-1, 1, 2))

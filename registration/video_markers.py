@@ -410,7 +410,7 @@ class VideoMarkerLocator:
         found: list[VideoMarker] = []
         for name, per, wanted in missing:
             for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)],
-                                   half_above_px=self.detect_below_px):
+                                   half_above_px=self.detect_below_px, rivals=list(per)):
                 found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
         if not found:
             return video

@@ -19,14 +19,15 @@ from tag_detection import _true_corners  # noqa: E402  (the twin's true corners,
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.aruco_detect import detect_aruco
+from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, register_with_recovery, track_frame
 from drillnav.registration.tag_hypotheses import outline_hypotheses
-from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX
-from drillnav.registration.tag_search import QUADS_PER_HULL, _quads_of_hull, _same_as_any, search_tags
-from drillnav.registration.video_markers import VideoMarkerLocator
+from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes
+from drillnav.registration.tag_search import QUADS_PER_HULL, _quads_of_hull, _same_as_any, identify_quad, search_tags
+from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
@@ -265,3 +266,70 @@ def test_a_tag_cut_close_to_its_corner_is_outlined_with_that_corner_beyond_the_e
     cross."""
     corners = np.array([[236.0, 150.0], [304.0, -10.0], [454.0, 55.0], [383.0, 207.0]])
     _search_finds_it_alone(corners, aruco_id=37, other_id=14, what="tag cut close to its corner")
+
+
+def _tag_read_in_part(corners_px, *, aruco_id: int, read_cells, size=(480, 640)):
+    """A frame (H, W) uint8 with one DICT_6X6_250 tag at ``corners_px`` whose code cells outside ``read_cells`` (a set of
+    (row, column) of the 6 x 6 code) are painted mid-grey (halfway between its black and white: unread, as under a
+    haze of glare), on a white base over a plain grey drape."""
+    h, w = size
+    frame = np.full((h, w), 110.0)
+    tag = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), aruco_id, 800).astype(np.float64)
+    for r in range(6):
+        for c in range(6):
+            if (r, c) not in read_cells:
+                tag[100 * (r + 1):100 * (r + 2), 100 * (c + 1):100 * (c + 2)] = 127.5
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)
+    to_frame = cv2.getPerspectiveTransform(unit, np.asarray(corners_px, dtype=np.float32))
+    base = cv2.perspectiveTransform(((unit - 0.5) * 1.6 + 0.5).reshape(-1, 1, 2), to_frame).reshape(-1, 2)
+    cv2.fillConvexPoly(frame, np.round(base * 16).astype(np.int32), 235.0, lineType=cv2.LINE_AA, shift=4)
+    warped = cv2.warpPerspective(tag, to_frame @ np.diag([1 / 800, 1 / 800, 1]), (w, h), flags=cv2.INTER_AREA)
+    inside = cv2.warpPerspective(np.ones_like(tag), to_frame @ np.diag([1 / 800, 1 / 800, 1]), (w, h), flags=cv2.INTER_AREA)
+    frame = np.where(inside > 0.5, warped * 0.85 + 25, frame)
+    return np.clip(cv2.GaussianBlur(frame, (0, 0), 0.8), 0, 255).astype(np.uint8)
+
+
+def test_a_tag_read_in_part_that_an_id_outside_the_marker_set_nearly_fits_is_named_by_the_set():
+    """Twin seed 9305, AP+lateral, second drill pose: marker 2's tag, a finger over a corner and a highlight over its
+    code, read in 21 cells of which 20 agree with id 2; an id outside the marker set agrees in 18. The
+    dictionary-wide rule refused it, and the frame, sharing no other tag with fluoroscopy, was refused. Here: a tag
+    read in 22 cells, an id from outside the set agreeing in all but two of them, every id of the set far off."""
+    codes = dictionary_codes("DICT_6X6_250")
+    mine = 23
+    flat = codes.reshape(len(codes), -1)
+    rot = np.stack([np.rot90(codes[i], k).reshape(-1) for i in range(len(codes)) for k in range(4)])
+    # The id (any rotation) nearest to tag 23, and 22 cells: those where the two agree, and 2 where they differ.
+    agree = (rot == flat[mine][None, :]).sum(axis=1)
+    agree[4 * mine:4 * mine + 4] = -1
+    near = int(np.argmax(agree))
+    same, differ = np.nonzero(rot[near] == flat[mine])[0], np.nonzero(rot[near] != flat[mine])[0]
+    cells = list(same[:20]) + list(differ[:2])
+    assert len(cells) == 22
+    read_cells = {(int(i) // 6, int(i) % 6) for i in cells}
+    corners = np.array([[250.0, 140.0], [390.0, 160.0], [375.0, 300.0], [235.0, 285.0]])
+    gray = _tag_read_in_part(corners, aruco_id=mine, read_cells=read_cells)
+    set_ids = [5, mine, 40]
+    assert near // 4 not in set_ids
+    gray_f = gray.astype(np.float32)
+    # The dictionary-wide rule alone: id near // 4 fits 20 of the 22 cells, 23 all 22: within 4, refused.
+    assert identify_quad(gray_f, corners, dictionary="DICT_6X6_250", wanted=set_ids) is None
+    # Judged among the marker set's ids (every one far from these cells): named, at its rotation.
+    tag = identify_quad(gray_f, corners, dictionary="DICT_6X6_250", wanted=set_ids, rivals=set_ids)
+    assert tag is not None and tag.aruco_id == mine and (tag.cells_read, tag.cells_agreeing, tag.runner_up_agreeing) == (22, 22, 20)
+    assert np.allclose(tag.corners_px, corners)
+    # The near id in the set: a rival within 4 cells, refused; so is an id that fits the cells better than the one asked for.
+    assert identify_quad(gray_f, corners, dictionary="DICT_6X6_250", wanted=set_ids, rivals=set_ids + [near // 4]) is None
+    assert identify_quad(gray_f, corners, dictionary="DICT_6X6_250", wanted=[near // 4], rivals=[near // 4, mine]) is None
+    # Fewer than the 20 cells the search needs with no place to vouch: refused whatever the rivals.
+    few = _tag_read_in_part(corners, aruco_id=mine, read_cells=set(list(read_cells)[:18]))
+    assert identify_quad(few.astype(np.float32), corners, dictionary="DICT_6X6_250", wanted=set_ids, rivals=set_ids) is None
+    # The search end to end: its outline found, named by the set's rule, refused by the dictionary-wide one.
+    found = search_tags(gray, dictionary="DICT_6X6_250", wanted=set_ids, rivals=set_ids)
+    assert [t.aruco_id for t in found] == [mine] and np.linalg.norm(found[0].corners_px - corners, axis=1).max() < 1.5
+    assert search_tags(gray, dictionary="DICT_6X6_250", wanted=set_ids) == []
+    # The locator's search (the registration's recovery and the live path call it) judges by its marker set's ids.
+    camera = PinholeCamera(width=640, height=480, camera_matrix=np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]))
+    none = VideoDetections(markers=(), ignored_ids=(), image_size=(640, 480))
+    more = VideoMarkerLocator(camera=camera, marker_ids=set_ids).search(gray, none, set_ids)
+    assert [m.marker_id for m in more.markers] == [mine] and more.markers[0].recovered
+    assert VideoMarkerLocator(camera=camera, marker_ids=set_ids + [near // 4]).search(gray, none, set_ids) is none
