@@ -218,10 +218,26 @@ def search_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, loc
     return locator.search(image, video, wanted) if wanted else video
 
 
-def _missing(video: VideoDetections, poses: tuple[MarkerPose, ...], locator: VideoMarkerLocator) -> list[MarkerPose]:
-    """The markers posed in fluoroscopy (converged) that the locator knows and the frame did not find."""
+def _missing(video: VideoDetections, poses: tuple[MarkerPose, ...], locator: VideoMarkerLocator, *, unsettled: bool = False) -> list[MarkerPose]:
+    """The markers posed in fluoroscopy (converged) that the locator knows and the frame did not find; ``unsettled``:
+    instead those posed over two views whose fit did not converge (:func:`_placeable`)."""
     have = {m.marker_id for m in video.markers}
-    return [p for p in poses if p.converged and p.marker_id not in have and p.marker_id in locator.marker_ids]
+    return [p for p in poses if _placeable(p, unsettled=unsettled) and p.marker_id not in have and p.marker_id in locator.marker_ids]
+
+
+def _placeable(pose: MarkerPose, *, unsettled: bool = False) -> bool:
+    """Whether the registration may say where ``pose``'s tag lies: a converged pose; with ``unsettled``, instead a
+    marker identified in two or more views whose fit over them did not converge.
+
+    Such a fit misses ``register_markers``' residual limit when one view's BBs are crowded or pulled (a marker seen
+    steeply), or when the views converge alone but not together. Its BBs in two views still fix where it is: on the
+    operating-room twin (seeds 8003, 9301, 9901, the tags the camera then missed) such markers lay 0.4-0.7 mm from
+    the truth, while markers not converged in one view lay 17-21 mm off. No place vouches for a tag found where an
+    unsettled pose puts it (a view's BBs may be paired wrongly): its code alone names it.
+    """
+    if not unsettled:
+        return pose.converged
+    return not pose.converged and not pose.loose and len({id(o[0]) for o in pose.observations}) >= 2
 
 
 def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
@@ -244,17 +260,18 @@ def recover_missing_tags(image: NDArray[np.uint8], video: VideoDetections, *, lo
 
 def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...],
                          marker_set: MarkerSet, carm_from_drill: NDArray[np.float64],
-                         carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> dict[int, NDArray[np.float64]]:
+                         carm_from_marker: dict[int, NDArray[np.float64]] | None = None, unsettled: bool = False) -> dict[int, NDArray[np.float64]]:
     """{marker id: (K, 4, 2) predicted tag corners, px}: the markers posed in fluoroscopy that ``video`` misses and
     whose tag the registration ``carm_from_drill`` (4, 4) puts mostly in the camera's frame.
 
     Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else every
     solution fluoroscopy left open (:attr:`.MarkerPose.solutions`: K = 2 for a mirror, more for a BB pattern
-    paired two ways).
+    paired two ways). ``unsettled``: instead the markers posed over two views whose fit did not converge
+    (:func:`_placeable`).
     """
-    missing = {p.marker_id for p in _missing(video, poses, locator)}
+    missing = {p.marker_id for p in _missing(video, poses, locator, unsettled=unsettled)}
     places = predict_tag_places(locator=locator, camera=camera, poses=tuple(p for p in poses if p.marker_id in missing), marker_set=marker_set,
-                                carm_from_drill=carm_from_drill, carm_from_marker=carm_from_marker)
+                                carm_from_drill=carm_from_drill, carm_from_marker=carm_from_marker, unsettled=unsettled)
     expected = {}
     for marker_id, cands in places.items():
         # Only tags mostly in the frame (a tag cut by its edge is fitted on what is in it): a marker out of view costs nothing more.
@@ -265,18 +282,20 @@ def predict_missing_tags(video: VideoDetections, *, locator: VideoMarkerLocator,
 
 
 def predict_tag_places(*, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...], marker_set: MarkerSet,
-                       carm_from_drill: NDArray[np.float64], carm_from_marker: dict[int, NDArray[np.float64]] | None = None) -> dict[int, NDArray[np.float64]]:
+                       carm_from_drill: NDArray[np.float64], carm_from_marker: dict[int, NDArray[np.float64]] | None = None,
+                       unsettled: bool = False) -> dict[int, NDArray[np.float64]]:
     """{marker id: (K, 4, 2) px}: where the registration ``carm_from_drill`` (4, 4) puts the tag of every marker posed in
     fluoroscopy (converged) that the locator knows, in the frame or not; K = 0 when every candidate lies behind the camera.
 
     Each marker's pose in C is ``carm_from_marker[id]`` (a registration's refined pose) when given, else every
     solution fluoroscopy left open (:attr:`.MarkerPose.solutions`: K = 2 for a mirror, more for a BB pattern
-    paired two ways).
+    paired two ways). ``unsettled``: instead every marker posed over two views whose fit did not converge
+    (:func:`_placeable`).
     """
     refined = carm_from_marker or {}
     places = {}
     for p in poses:
-        if not p.converged or p.marker_id not in locator.marker_ids:
+        if not _placeable(p, unsettled=unsettled) or p.marker_id not in locator.marker_ids:
             continue
         starts = (refined[p.marker_id],) if p.marker_id in refined else p.solutions
         cands = [predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=t, tag_corners_marker_mm=marker_set.by_id(p.marker_id).tag_corners_mm(), camera=camera)
@@ -348,6 +367,18 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # With the solution settled, a tag found where predicted is named by its place too (the marker posed there).
         more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed,
                                by_place=reg.mirror_carm_from_drill is None)
+    if joint:
+        # Markers identified in two views whose fit did not converge (a steep view's crowded BBs): where their BBs put
+        # them, their tags are looked for too, named by their code alone (no place vouches for an unsettled pose).
+        guessed = predict_missing_tags(more, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                       unsettled=True)
+        if guessed:
+            around = _merged(predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                                carm_from_marker=reg.carm_from_marker),
+                             predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                                unsettled=True))
+            more = locator.recover(image, more, guessed, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=around, by_place=False)
+            expected = {**expected, **guessed}
     left = set(expected) - {m.marker_id for m in more.markers}
     if weak:
         # A registration on one marker (or two) may be far off, its marker posed upside down in fluoroscopy (twin

@@ -26,7 +26,7 @@ from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, rende
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.pipeline import LiveCalibration, recover_missing_tags, register_with_recovery, track_frame
+from drillnav.registration.pipeline import LiveCalibration, predict_missing_tags, recover_missing_tags, register_with_recovery, track_frame
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, predict_tag_corners, recover_tag
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 from drillnav.registration.transforms import apply, make_transform
@@ -580,3 +580,38 @@ def test_the_registration_takes_the_glared_tag_its_place_names():
         return np.linalg.norm(TRUE_DRILL_AXIS_CAMERA.transformed(carm_from_drill).closest_point(entry)
                               - TRUE_DRILL_AXIS_CAMERA.transformed(pose).closest_point(entry))
     assert error(reg.carm_from_drill) <= error(before.carm_from_drill) + 0.05, (error(reg.carm_from_drill), error(before.carm_from_drill))
+
+
+def test_a_marker_posed_over_two_views_whose_fit_did_not_converge_has_its_missed_tag_looked_for(gloved, fluoro_poses):
+    """A marker identified in both views whose fit over them missed register_markers' residual limit (a steep view's
+    crowded BBs: on the operating-room twin such markers lay 0.4-0.7 mm from the truth, seeds 8003, 9301, 9901) was
+    never predicted in the frame, so its tag, once the detector missed it, stayed lost. Here one of the scene's markers
+    posed over both views is marked not converged and its tag taken out of the frame's detections: the registration's
+    recovery finds it where the two views' BBs put it and the joint solve uses it; posed in one view only, it is not
+    looked for (such poses lay 17-21 mm off)."""
+    scene, pose, image, locator = gloved
+    detected = locator.locate(image)
+    two_view = [p for p in fluoro_poses if p.converged and p.marker_id in detected.by_id() and p.marker_id != GLOVED
+                and len({id(o[0]) for o in p.observations}) == 2]
+    assert two_view, "no marker of this frame is posed over both views: the scene no longer tests this"
+    marker_id = two_view[0].marker_id
+    truth = _true_corners(scene, pose)[marker_id]
+    unsettled = tuple(replace(p, converged=False) if p.marker_id == marker_id else p for p in fluoro_poses)
+    without = replace(detected, markers=tuple(m for m in detected.markers if m.marker_id != marker_id))
+    kwargs = dict(locator=locator, camera=scene.calibrated_camera, marker_set=scene.marker_set)
+    reg = register_video_to_fluoro(without, unsettled, scene.marker_set, scene.calibrated_camera)
+    assert marker_id not in reg.used_ids
+    # The converged poses' prediction leaves it out; the unsettled one places it within a few pixels of its tag.
+    assert marker_id not in predict_missing_tags(without, poses=unsettled, carm_from_drill=reg.carm_from_drill, **kwargs)
+    guessed = predict_missing_tags(without, poses=unsettled, carm_from_drill=reg.carm_from_drill, unsettled=True, **kwargs)
+    assert set(guessed) == {marker_id} and np.abs(guessed[marker_id][0] - truth).max() < 8.0
+    video, got = register_with_recovery(image, without, poses=unsettled, **kwargs)
+    found = video.by_id()[marker_id]
+    assert found.recovered and set(got.used_ids) >= set(reg.used_ids) | {marker_id}
+    print(f"marker {marker_id}'s tag recovered from an unsettled two-view pose: corners {np.round(np.linalg.norm(found.corners_px - truth, axis=1), 2)} px off")
+    assert np.linalg.norm(found.corners_px - truth, axis=1).max() < CORNER_TOLERANCE_PX
+    # Posed in one view only and not converged: not looked for.
+    one_view = tuple(replace(p, converged=False, observations=p.observations[:1]) if p.marker_id == marker_id else p for p in fluoro_poses)
+    assert predict_missing_tags(without, poses=one_view, carm_from_drill=reg.carm_from_drill, unsettled=True, **kwargs) == {}
+    video, got = register_with_recovery(image, without, poses=one_view, **kwargs)
+    assert marker_id not in video.by_id() and marker_id not in got.used_ids
