@@ -310,40 +310,12 @@ def _merged(a: dict[int, NDArray[np.float64]], b: dict[int, NDArray[np.float64]]
     return {i: np.concatenate([c for c in (a.get(i), b.get(i)) if c is not None]) for i in a.keys() | b.keys()}
 
 
-def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
-                           poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True,
-                           search: bool = True, name_outlines: bool = True) -> tuple[VideoDetections, DrillRegistration]:
-    """Register ``video`` (:func:`.register_video_to_fluoro`), recover the missing tags where that registration predicts
-    them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration).
-
-    A frame that shares no marker with fluoroscopy first has the missing tags searched for without a prediction
-    (:func:`search_missing_tags`); a tag that the registration puts in the frame but that the recovery did not find
-    where predicted is searched for the same way afterwards. ``search`` False skips both (a caller that searched
-    already, or the tracking path, which cannot spend ~50 ms a frame).
-
-    A joint registration that is refused for want of a shared marker, or that rests on one marker
-    (``NAMED_BELOW_MARKERS``), then tries the tags whose code reads only in part, named among the posed markers
-    the frame misses (:func:`_registration_with_named_tags`); ``name_outlines`` False skips that.
-
-    The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
-    registration raises.
-    """
-    every = poses
-    # A loose hypothesis (a ring matched against one marker alone) names no marker until the camera bears it out: it
-    # predicts no tag and starts no search.
-    poses = tuple(p for p in poses if not p.loose)
-    searched = search and not _shares_a_marker(video, poses)
-    if searched:
-        video = search_missing_tags(image, video, locator=locator, poses=poses)
-    named = joint and name_outlines
-    try:
-        reg = register_video_to_fluoro(video, every, marker_set, camera, joint=joint)
-    except MarkersNotFound:
-        got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
-                                            used_before=0) if named else None
-        if got is None:
-            raise
-        return got
+def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: DrillRegistration, *, locator: VideoMarkerLocator,
+                       camera: PinholeCamera, poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool,
+                       search: bool) -> tuple[VideoDetections, dict[int, NDArray[np.float64]], bool]:
+    """One pass of :func:`register_with_recovery`'s recovery: the missing tags looked for where the registration ``reg``
+    puts them: (detections, {marker id: predicted corners} looked for, whether ``reg`` is weak: fewer than
+    ``HORN_MIN_MARKERS`` markers on the joint solve's frames)."""
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
     if reg.mirror_carm_from_drill is not None:
@@ -379,6 +351,47 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
                                                 unsettled=True))
             more = locator.recover(image, more, guessed, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=around, by_place=False)
             expected = {**expected, **guessed}
+    return more, expected, weak
+
+
+def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
+                           poses: tuple[MarkerPose, ...], marker_set: MarkerSet, joint: bool = True,
+                           search: bool = True, name_outlines: bool = True) -> tuple[VideoDetections, DrillRegistration]:
+    """Register ``video`` (:func:`.register_video_to_fluoro`), recover the missing tags where that registration predicts
+    them (:func:`recover_missing_tags`), and register again if any was recovered: (detections, registration). When
+    that registration uses more markers than the first, the tags still missing are looked for once more where it
+    puts them (a first registration on one marker, its mirror open, predicts them tens of pixels off).
+
+    A frame that shares no marker with fluoroscopy first has the missing tags searched for without a prediction
+    (:func:`search_missing_tags`); a tag that the registration puts in the frame but that the recovery did not find
+    where predicted is searched for the same way afterwards. ``search`` False skips both (a caller that searched
+    already, or the tracking path, which cannot spend ~50 ms a frame).
+
+    A joint registration that is refused for want of a shared marker, or that rests on one marker
+    (``NAMED_BELOW_MARKERS``), then tries the tags whose code reads only in part, named among the posed markers
+    the frame misses (:func:`_registration_with_named_tags`); ``name_outlines`` False skips that.
+
+    The one home of this sequence: ``track_frame`` and the accuracy study call it. Raises what the first
+    registration raises.
+    """
+    every = poses
+    # A loose hypothesis (a ring matched against one marker alone) names no marker until the camera bears it out: it
+    # predicts no tag and starts no search.
+    poses = tuple(p for p in poses if not p.loose)
+    searched = search and not _shares_a_marker(video, poses)
+    if searched:
+        video = search_missing_tags(image, video, locator=locator, poses=poses)
+    named = joint and name_outlines
+    try:
+        reg = register_video_to_fluoro(video, every, marker_set, camera, joint=joint)
+    except MarkersNotFound:
+        got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
+                                            used_before=0) if named else None
+        if got is None:
+            raise
+        return got
+    more, expected, weak = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                              joint=joint, search=search)
     left = set(expected) - {m.marker_id for m in more.markers}
     if weak:
         # A registration on one marker (or two) may be far off, its marker posed upside down in fluoroscopy (twin
@@ -390,7 +403,15 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         # prediction, in the whole frame.
         more = locator.search(image, more, left)
     if more is not video:
+        before = len(reg.used_ids)
         video, reg = more, register_video_to_fluoro(more, every, marker_set, camera, joint=joint)
+        if len(reg.used_ids) > before:
+            # A registration that gained markers predicts the tags still missing better than the one it started from (on
+            # one marker, its mirror open: 5-38 px off on the operating-room twin, then 1-2 px): they are looked for once more.
+            again, _, _ = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                             joint=joint, search=search)
+            if again is not video:
+                video, reg = again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
     if named and len(reg.used_ids) < NAMED_BELOW_MARKERS:
         got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
                                             used_before=len(reg.used_ids))
