@@ -326,10 +326,11 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
         expected = _merged(expected, mirrored)
     weak = search and joint and len(reg.used_ids) < HORN_MIN_MARKERS
     more = video
+    # Where the registration puts every posed marker's tag: one placed away from a missing tag is no rival to its identity.
+    settled = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
+                                 carm_from_marker=reg.carm_from_marker)
     if expected:
-        # Where the registration puts every posed marker's tag: one placed away from a missing tag is no rival to its identity.
-        placed = predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                    carm_from_marker=reg.carm_from_marker)
+        placed = settled
         if reg.mirror_carm_from_drill is not None:
             placed = _merged(placed, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
                                                         carm_from_drill=reg.mirror_carm_from_drill))
@@ -345,10 +346,8 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
         guessed = predict_missing_tags(more, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                        unsettled=True)
         if guessed:
-            around = _merged(predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                                carm_from_marker=reg.carm_from_marker),
-                             predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                                unsettled=True))
+            around = _merged(settled, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                                         carm_from_drill=reg.carm_from_drill, unsettled=True))
             more = locator.recover(image, more, guessed, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=around, by_place=False)
             expected = {**expected, **guessed}
     return more, expected, weak
