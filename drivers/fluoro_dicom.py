@@ -6,9 +6,14 @@ and its Sign (0028,1041) when the image states them (XA and XRF do): LIN values
 follow the X-ray intensity and are converted with -log(I / I0), I0 from the
 brightest 0.5 %; LOG values are used as they are when higher values mean less
 intensity (Sign -1) and negated when they mean more (Sign +1). Without them:
-MONOCHROME1 values follow detector intensity (as LIN); the twin's images are
-log attenuation; other MONOCHROME2 images are mapped by their 0.5-99.5 % range
-onto typical line integrals (an approximation: calibrate such a C-arm).
+MONOCHROME1 values follow detector intensity (as LIN); other MONOCHROME2 images
+(processed for display, DISP) say nothing of their polarity: a radiograph's
+display shows metal bright, most fluoroscopy displays show it dark. Such an
+image is read both ways: mapped by its 0.5-99.5 % range onto typical line
+integrals (metal bright) and, in ``pixels_log_as_intensity``, as LIN (metal
+dark); the reading in which the markers are identified is chosen downstream
+(``service/fluoro_polarity.py``). Either is an approximation of the log
+attenuation: state LIN or LOG on such a C-arm.
 Geometry comes from a calibrated projection-matrix JSON when given (it
 overrides), else from the positioner attributes; anything missing or
 inconsistent is refused with the attribute named.
@@ -16,7 +21,7 @@ inconsistent is refused with the attribute named.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +66,25 @@ class FluoroImage:
     frame_index: int
     geometry_source: str  # "projection-matrix" or "positioner"
     view_name: str  # from the positioner angles (e.g. "p+0s-25"), else the file name
+    # A file that does not say how its values follow the X-ray intensity (MONOCHROME2 processed for display): the
+    # same pixels read as intensity (metal dark), as LIN images are; None where the file says (``pixels_log`` is then
+    # its only reading).
+    pixels_log_as_intensity: NDArray[np.float32] | None = None
+
+    @property
+    def polarity_stated(self) -> bool:
+        """Whether the file says which way its values follow the X-ray intensity (one reading only)."""
+        return self.pixels_log_as_intensity is None
+
+    def read_as_intensity(self) -> FluoroImage:
+        """This image with its other reading (``pixels_log_as_intensity``) taken as its log attenuation."""
+        if self.pixels_log_as_intensity is None:
+            raise ValueError(f"{self.source_file}: the file states its polarity; there is no other reading")
+        return replace(self, pixels_log=self.pixels_log_as_intensity, pixels_log_as_intensity=None)
+
+    def read_as_displayed(self) -> FluoroImage:
+        """This image with its first reading (``pixels_log``: metal bright) taken, the other dropped."""
+        return replace(self, pixels_log_as_intensity=None)
 
 
 def _intensifier_sigma_px(ds, pixel_spacing_mm: tuple[float, ...]) -> float:
@@ -135,11 +159,16 @@ def _intensity_mapping(ds, name: str) -> str:
         return "log intensity" if sign == 1 else "attenuation"
     if relation == "LIN":
         return "inverted intensity" if sign == -1 else "intensity"
-    if str(getattr(ds, "Manufacturer", "")) == "drillnav digital twin":
-        return "attenuation"
     if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
         return "intensity"
     return "display"
+
+
+def _intensity_to_log(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Values (rows, columns) that follow the detector's intensity (low behind bone) as log attenuation: -log(I / I0),
+    I0 from the brightest 0.5 %."""
+    i0 = np.percentile(values, 99.5)
+    return -np.log(np.clip(values, 1e-3, None) / max(i0, 1e-3))
 
 
 def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> list[FluoroImage]:
@@ -178,21 +207,22 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     out = []
     for i, frame in enumerate(frames):
         values = frame * slope + intercept
+        as_intensity = None
         if mapping == "intensity":
-            # Values follow the detector's intensity (low behind bone): -log(I / I0).
-            i0 = np.percentile(values, 99.5)
-            values = -np.log(np.clip(values, 1e-3, None) / max(i0, 1e-3))
+            values = _intensity_to_log(values)
         elif mapping == "inverted intensity":
             # Values fall as the intensity rises: I = (the largest value) - value.
-            flipped = values.max() - values
-            i0 = np.percentile(flipped, 99.5)
-            values = -np.log(np.clip(flipped, 1e-3, None) / max(i0, 1e-3))
+            values = _intensity_to_log(values.max() - values)
         elif mapping == "log intensity":
             # log(I) up to a gain and an offset: negated, and the brightest 0.5 % taken as no attenuation.
             values = np.percentile(values, 99.5) - values
         elif mapping == "display":
-            # A processed MONOCHROME2 image of unknown scale: map its range onto typical line integrals.
+            # A processed MONOCHROME2 image of unknown scale and polarity: its range mapped onto typical line
+            # integrals (metal bright, as a radiograph shows it), and read as intensity (metal dark, as most
+            # fluoroscopy displays show it; -log of a display's gamma is a gain on the log attenuation).
+            as_intensity = _intensity_to_log(values).astype(np.float32)
             lo, hi = np.percentile(values, [0.5, 99.5])
             values = (values - lo) / max(hi - lo, 1e-6) * 6.0
-        out.append(FluoroImage(pixels_log=values.astype(np.float32), view=view, source_file=str(p), sop_class=SUPPORTED_SOP_CLASSES[sop], frame_index=i, geometry_source=geometry_source, view_name=view_name))
+        out.append(FluoroImage(pixels_log=values.astype(np.float32), view=view, source_file=str(p), sop_class=SUPPORTED_SOP_CLASSES[sop], frame_index=i,
+                               geometry_source=geometry_source, view_name=view_name, pixels_log_as_intensity=as_intensity))
     return out

@@ -26,11 +26,12 @@ def _measure(args: argparse.Namespace) -> int:
 
     from drillnav.drivers.fluoro_dicom import read_fluoro
     from drillnav.registration.errors import DegenerateInput
-    from drillnav.registration.fluoro_markers import detect_in_view
     from drillnav.registration.marker_as_built import measure_as_built
     from drillnav.registration.marker_pose import register_markers
     from drillnav.registration.markers import BB, MarkerSet
     from drillnav.schemas.markers import read_marker_set, write_marker_set
+
+    from .fluoro_polarity import settle_polarity
 
     out = check_output_path(args.out, suffixes=(".json",))
     if not args.tolerance_mm > 0:
@@ -39,8 +40,8 @@ def _measure(args: argparse.Namespace) -> int:
     images = [img for f in args.fluoro for img in read_fluoro(f)]
     if len(images) < 2:
         raise CliError(f"{len(images)} fluoroscopy image(s): measuring the markers needs at least 2 shots from different angles")
-    detections = [detect_in_view(img.pixels_log, img.view, marker_set)
-                  for img in images]
+    # An image whose file does not say which way its values run is taken in the reading that shows the markers.
+    detections = [settle_polarity(img, marker_set).detections for img in images]
     poses = register_markers(detections, [img.view for img in images], marker_set)
     measured = {}
     for pose in poses:

@@ -43,6 +43,7 @@ from drillnav.schemas.topics import TOPICS, key
 from . import bus
 from .bus import open_session
 from .camera_pump import CameraPump
+from .fluoro_polarity import settle_polarity
 from .node import RegistrationNode
 from .recorder import CarriedState, Recorder
 from .settings import Settings
@@ -352,6 +353,16 @@ class Daemon:
                 self.intake.mark_processed(path)  # refused for good: not offered again after a restart
                 continue
             for img in images:
+                if not img.polarity_stated:
+                    # The file does not say which way its values run: the reading that shows the markers travels on.
+                    try:
+                        settled = settle_polarity(img, self.node.marker_set)
+                    except Exception as exc:  # noqa: BLE001 - one image the detector cannot read must not stop the intake
+                        self.errors.append(f"{path}: {type(exc).__name__}: {exc}")
+                        self._event("error", f"fluoroscopy refused: {path}: its polarity could not be settled ({type(exc).__name__}: {exc})")
+                        continue
+                    img = settled.image
+                    self._event("warning", f"fluoroscopy {settled.note}")
                 # A re-shot of the same view replaces the earlier shot of it in the node.
                 name = img.view_name
                 stamp = time.time_ns()

@@ -14,7 +14,6 @@ from drillnav.drivers.ct_volume import read_ct
 from drillnav.drivers.fluoro_dicom import read_fluoro
 from drillnav.drivers.image_files import read_image
 from drillnav.registration.errors import MarkersNotFound
-from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.overlay import annotate, draw_axis, draw_detections, mask_markers, to_display
 from drillnav.registration.pipeline import LiveCalibration, track_frame
@@ -22,6 +21,7 @@ from drillnav.schemas.calibration import read_camera_calibration, read_drill_cal
 from drillnav.schemas.geometry_json import axis_to_json, transform_to_json
 from drillnav.schemas.markers import read_marker_set
 
+from .fluoro_polarity import settle_polarity
 from .outputs import check_output_dir, check_output_path
 
 __all__ = ["run_registration", "handle"]
@@ -47,8 +47,9 @@ def run_registration(args: argparse.Namespace) -> dict:
     timings["video_markers_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    detections = [detect_in_view(img.pixels_log, img.view, marker_set)
-                  for img in images]
+    # An image whose file does not say which way its values run is taken in the reading that shows the markers.
+    settled = [settle_polarity(img, marker_set) for img in images]
+    images, detections = [s.image for s in settled], [s.detections for s in settled]
     timings["fluoro_features_s"] = time.perf_counter() - t
     # One is enough: the camera's markers claim the others' BBs (video_claims); a ring matched only loosely (a candidate,
     # or a loose match to one marker alone) may still be borne out by the camera's constellation, so it counts here too.
@@ -94,8 +95,8 @@ def run_registration(args: argparse.Namespace) -> dict:
         "drill_axis_carm": axis_to_json(axis_out),
         "views": [{"file": img.source_file, "frame": img.frame_index, "geometry": img.geometry_source, "line_px": [float(v) for v in axis_c.project(img.view.projection_matrix)],
                    "markers_identified": sorted(m.marker_id for m in det.markers), "rejected": [r.reason for r in det.rejected],
-                   "detector_distortion_px": _distortion_of(reg, img.view)}
-                  for img, det in zip(images, detections)],
+                   "detector_distortion_px": _distortion_of(reg, img.view), "polarity": st.note or "stated by the file"}
+                  for img, det, st in zip(images, detections, settled)],
         "markers": [{"id": p.marker_id, "position_carm_mm": [float(v) for v in p.position_carm_mm], "fre_mm": reg.fre_mm.get(p.marker_id),
                      "residual_px": p.residual_px, "views": p.n_views, "converged": p.converged, "needs_camera": p.needs_camera,
                      "loose": p.loose, "rejected": p.marker_id in reg.rejected_ids}
