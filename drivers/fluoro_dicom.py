@@ -6,14 +6,15 @@ and its Sign (0028,1041) when the image states them (XA and XRF do): LIN values
 follow the X-ray intensity and are converted with -log(I / I0), I0 from the
 brightest 0.5 %; LOG values are used as they are when higher values mean less
 intensity (Sign -1) and negated when they mean more (Sign +1). Without them:
-MONOCHROME1 values follow detector intensity (as LIN); other MONOCHROME2 images
-(processed for display, DISP) say nothing of their polarity: a radiograph's
-display shows metal bright, most fluoroscopy displays show it dark. Such an
-image is read both ways: mapped by its 0.5-99.5 % range onto typical line
-integrals (metal bright) and, in ``pixels_log_as_intensity``, as LIN (metal
-dark); the reading in which the markers are identified is chosen downstream
-(``service/fluoro_polarity.py``). Either is an approximation of the log
-attenuation: state LIN or LOG on such a C-arm.
+the image says nothing of which way its values run (DISP: processed for display),
+and displays differ: a radiograph's shows metal bright, most fluoroscopy
+displays show it dark. Such an image is read both ways: first as its
+photometric interpretation displays it metal bright (MONOCHROME1: values follow
+the intensity, as LIN; MONOCHROME2: values rise with attenuation, mapped by
+their 0.5-99.5 % range onto typical line integrals), and, in
+``alternative_log``, the other way; the reading in which the markers are
+identified is chosen downstream (``service/fluoro_polarity.py``). Either is an
+approximation of the log attenuation: state LIN or LOG on such a C-arm.
 Geometry comes from a calibrated projection-matrix JSON when given (it
 overrides), else from the positioner attributes; anything missing or
 inconsistent is refused with the attribute named.
@@ -66,25 +67,27 @@ class FluoroImage:
     frame_index: int
     geometry_source: str  # "projection-matrix" or "positioner"
     view_name: str  # from the positioner angles (e.g. "p+0s-25"), else the file name
-    # A file that does not say how its values follow the X-ray intensity (MONOCHROME2 processed for display): the
-    # same pixels read as intensity (metal dark), as LIN images are; None where the file says (``pixels_log`` is then
-    # its only reading).
-    pixels_log_as_intensity: NDArray[np.float32] | None = None
+    # How ``pixels_log`` was read from the stored values (Pixel Intensity Relationship, or the display's convention).
+    reading: str = "stated by the file"
+    # A file that does not say which way its values run (no LIN / LOG): the same pixels read the other way, and how;
+    # None where the file says (``pixels_log`` is then its only reading).
+    alternative_log: NDArray[np.float32] | None = None
+    alternative_reading: str = ""
 
     @property
     def polarity_stated(self) -> bool:
         """Whether the file says which way its values follow the X-ray intensity (one reading only)."""
-        return self.pixels_log_as_intensity is None
+        return self.alternative_log is None
 
-    def read_as_intensity(self) -> FluoroImage:
-        """This image with its other reading (``pixels_log_as_intensity``) taken as its log attenuation."""
-        if self.pixels_log_as_intensity is None:
+    def read_the_other_way(self) -> FluoroImage:
+        """This image with its other reading (``alternative_log``) taken as its log attenuation, the first dropped."""
+        if self.alternative_log is None:
             raise ValueError(f"{self.source_file}: the file states its polarity; there is no other reading")
-        return replace(self, pixels_log=self.pixels_log_as_intensity, pixels_log_as_intensity=None)
+        return replace(self, pixels_log=self.alternative_log, reading=self.alternative_reading, alternative_log=None, alternative_reading="")
 
-    def read_as_displayed(self) -> FluoroImage:
-        """This image with its first reading (``pixels_log``: metal bright) taken, the other dropped."""
-        return replace(self, pixels_log_as_intensity=None)
+    def read_as_first(self) -> FluoroImage:
+        """This image with its first reading (``pixels_log``) kept, the other dropped."""
+        return replace(self, alternative_log=None, alternative_reading="")
 
 
 def _intensifier_sigma_px(ds, pixel_spacing_mm: tuple[float, ...]) -> float:
@@ -140,7 +143,8 @@ def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> 
 
 def _intensity_mapping(ds, name: str) -> str:
     """How stored values relate to the X-ray intensity: 'attenuation' (log, higher = less intensity), 'log intensity',
-    'intensity', 'inverted intensity', or 'display' (unknown: range-mapped).
+    'intensity', 'inverted intensity', or, where the file does not say, 'display' (MONOCHROME2) or 'display, low values
+    bright' (MONOCHROME1).
 
     Pixel Intensity Relationship (0028,1040) LIN / LOG with its Sign (0028,1041): +1 lower values mean less
     intensity, -1 higher values mean less intensity (PS3.3 C.8.11.3). A stated relationship other than LIN or
@@ -160,7 +164,7 @@ def _intensity_mapping(ds, name: str) -> str:
     if relation == "LIN":
         return "inverted intensity" if sign == -1 else "intensity"
     if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
-        return "intensity"
+        return "display, low values bright"
     return "display"
 
 
@@ -169,6 +173,13 @@ def _intensity_to_log(values: NDArray[np.float64]) -> NDArray[np.float64]:
     I0 from the brightest 0.5 %."""
     i0 = np.percentile(values, 99.5)
     return -np.log(np.clip(values, 1e-3, None) / max(i0, 1e-3))
+
+
+def _range_to_log(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Values (rows, columns) that rise with attenuation, of unknown scale: their 0.5-99.5 % range mapped onto 0-6,
+    typical line integrals."""
+    lo, hi = np.percentile(values, [0.5, 99.5])
+    return (values - lo) / max(hi - lo, 1e-6) * 6.0
 
 
 def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> list[FluoroImage]:
@@ -207,7 +218,7 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     out = []
     for i, frame in enumerate(frames):
         values = frame * slope + intercept
-        as_intensity = None
+        reading, alternative, alternative_reading = "stated by the file", None, ""
         if mapping == "intensity":
             values = _intensity_to_log(values)
         elif mapping == "inverted intensity":
@@ -216,13 +227,18 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
         elif mapping == "log intensity":
             # log(I) up to a gain and an offset: negated, and the brightest 0.5 % taken as no attenuation.
             values = np.percentile(values, 99.5) - values
-        elif mapping == "display":
-            # A processed MONOCHROME2 image of unknown scale and polarity: its range mapped onto typical line
-            # integrals (metal bright, as a radiograph shows it), and read as intensity (metal dark, as most
-            # fluoroscopy displays show it; -log of a display's gamma is a gain on the log attenuation).
-            as_intensity = _intensity_to_log(values).astype(np.float32)
-            lo, hi = np.percentile(values, [0.5, 99.5])
-            values = (values - lo) / max(hi - lo, 1e-6) * 6.0
+        elif mapping in ("display", "display, low values bright"):
+            # Processed for display, of unknown scale and polarity: read as its photometric interpretation shows metal
+            # bright, and the other way (-log of a display's gamma is a gain on the log attenuation).
+            as_intensity, as_attenuation = _intensity_to_log(values), _range_to_log(values)
+            if mapping == "display":
+                values, reading = as_attenuation, "metal bright (MONOCHROME2: values rise with attenuation)"
+                alternative, alternative_reading = as_intensity, "metal dark (values follow the intensity, as LIN)"
+            else:
+                values, reading = as_intensity, "metal bright (MONOCHROME1: values follow the intensity, as LIN)"
+                alternative, alternative_reading = as_attenuation, "metal dark (values rise with attenuation)"
+            alternative = alternative.astype(np.float32)
         out.append(FluoroImage(pixels_log=values.astype(np.float32), view=view, source_file=str(p), sop_class=SUPPORTED_SOP_CLASSES[sop], frame_index=i,
-                               geometry_source=geometry_source, view_name=view_name, pixels_log_as_intensity=as_intensity))
+                               geometry_source=geometry_source, view_name=view_name, reading=reading, alternative_log=alternative,
+                               alternative_reading=alternative_reading))
     return out

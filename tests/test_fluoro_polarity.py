@@ -1,8 +1,8 @@
 """Fluoroscopy whose file does not say which way its values run (MONOCHROME2, no LIN / LOG: processed for display).
 
 The same twin shot is stored as a display shows it: metal bright (a radiograph's convention) or metal dark (most
-fluoroscopy displays), linear or with a display gamma. Read the one way the driver reads such a file by default, a
-metal-dark display shows no marker at all; the product takes the reading in which the markers are identified, in
+fluoroscopy displays), MONOCHROME2 or MONOCHROME1, linear or with a display gamma. Read by its display's convention
+alone (as the product did), a metal-dark display shows no marker at all; the product takes the reading in which the markers are identified, in
 ``drillnav register``, in ``drillnav markers measure``'s detections and in the daemon's intake (a real zenoh session,
 the shot and the warning as a client receives them).
 """
@@ -26,11 +26,22 @@ from drillnav.service.bus import open_session
 from drillnav.service.cli import main
 from drillnav.service.fluoro_polarity import settle_polarity
 
+def _attenuation_display(a):
+    return 4095.0 * np.clip((a - np.percentile(a, 0.5)) / np.ptp(np.percentile(a, [0.5, 99.5])), 0, 1)
+
+
+def _intensity_display(a, gamma=1.0):
+    return 4095.0 * np.clip(np.exp(-a) / np.percentile(np.exp(-a), 99.9), 0, 1) ** gamma
+
+
+# name: (Photometric Interpretation, stored value 0-4095 from the log attenuation a); "metal dark" where the display
+# (MONOCHROME2: high values white, MONOCHROME1: low values white) shows metal dark.
 DISPLAYS = {
-    # name: stored value (0-4095) from the log attenuation a, and whether metal shows bright
-    "metal bright": lambda a: 4095.0 * np.clip((a - np.percentile(a, 0.5)) / np.ptp(np.percentile(a, [0.5, 99.5])), 0, 1),
-    "metal dark": lambda a: 4095.0 * np.clip(np.exp(-a) / np.percentile(np.exp(-a), 99.9), 0, 1),
-    "metal dark, gamma 0.5": lambda a: 4095.0 * np.clip(np.exp(-a) / np.percentile(np.exp(-a), 99.9), 0, 1) ** 0.5,
+    "MONOCHROME2 metal bright": ("MONOCHROME2", _attenuation_display),
+    "MONOCHROME2 metal dark": ("MONOCHROME2", _intensity_display),
+    "MONOCHROME2 metal dark, gamma 0.5": ("MONOCHROME2", lambda a: _intensity_display(a, 0.5)),
+    "MONOCHROME1 metal bright": ("MONOCHROME1", _intensity_display),
+    "MONOCHROME1 metal dark": ("MONOCHROME1", _attenuation_display),
 }
 
 
@@ -48,7 +59,9 @@ def as_display(scene_dir, view: str, display: str, out_dir):
     ds = pydicom.dcmread(str(scene_dir / f"fluoro/{view}.dcm"))
     del ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign
     ds.RescaleSlope, ds.RescaleIntercept = "1", "0"
-    ds.PixelData = np.round(DISPLAYS[display](attenuation)).astype(np.uint16).tobytes()
+    photometric, stored = DISPLAYS[display]
+    ds.PhotometricInterpretation = photometric
+    ds.PixelData = np.round(stored(attenuation)).astype(np.uint16).tobytes()
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{view}.dcm"
     ds.save_as(str(path))
@@ -66,13 +79,14 @@ def test_a_display_image_is_read_the_way_its_markers_show(scene_dir, tmp_path, d
     path, attenuation = as_display(scene_dir, "inlet", display, tmp_path)
     (img,) = read_fluoro(path)
     assert not img.polarity_stated
-    metal_dark = display.startswith("metal dark")
+    metal_dark = "metal dark" in display
     if metal_dark:
         # What the product did before: a metal-dark display read metal bright shows its BBs as pits, and no marker.
         assert detect_in_view(img.pixels_log, img.view, marker_set).markers == ()
     settled = settle_polarity(img, marker_set)
     assert settled.image.polarity_stated  # one reading travels on
-    assert ("read as intensity, metal dark" in settled.note) == metal_dark and "polarity not stated" in settled.note
+    assert ("read metal dark" in settled.note) == metal_dark and "polarity not stated" in settled.note
+    assert settled.image.reading.startswith("metal dark" if metal_dark else "metal bright")
     assert np.corrcoef(attenuation.ravel(), settled.image.pixels_log.ravel())[0, 1] > 0.95  # more attenuation = larger
     got = settled.detections.by_id()
     assert len(set(want) - set(got)) <= 1 and set(got) <= set(marker_set.ids), (sorted(want), sorted(got))
@@ -99,13 +113,13 @@ def test_with_no_marker_in_either_reading_the_display_convention_stands_and_says
 
 
 def test_register_on_metal_dark_displays_reaches_the_truth(scene_dir, tmp_path):
-    paths = [as_display(scene_dir, v, "metal dark, gamma 0.5", tmp_path / "disp")[0] for v in ("inlet", "outlet")]
+    paths = [as_display(scene_dir, v, "MONOCHROME2 metal dark, gamma 0.5", tmp_path / "disp")[0] for v in ("inlet", "outlet")]
     out = tmp_path / "result.json"
     d = scene_dir
     assert main(["register", "--markers", str(d / "markers.json"), "--camera", str(d / "camera.json"), "--drill", str(d / "drill.json"),
                  "--video", str(d / "camera.png"), "--fluoro", *map(str, paths), "--out", str(out)]) == 0
     r, t = json.loads(out.read_text()), json.loads((d / "truth.json").read_text())
-    assert all("read as intensity, metal dark" in v["polarity"] for v in r["views"]) and all(len(v["markers_identified"]) >= 3 for v in r["views"])
+    assert all("read metal dark" in v["polarity"] for v in r["views"]) and all(len(v["markers_identified"]) >= 3 for v in r["views"])
     p, u = np.array(r["drill_axis_carm"]["point_mm"]), np.array(r["drill_axis_carm"]["direction"])
     e = np.array(t["corridor_entry_carm_mm"])
     assert np.linalg.norm(p + np.dot(e - p, u) * u - t["drill_axis_carm"]["point_mm"]) < 2.5
@@ -121,7 +135,7 @@ def test_the_daemons_intake_publishes_the_reading_that_shows_the_markers(scene_d
     cfg.write_text(f'markers_file = "{scene_dir / "markers.json"}"\n' + cfg.read_text())  # a top-level key, before the sections
     settings = settings_of(cfg)
     shots, events = [], []
-    path, attenuation = as_display(scene_dir, "inlet", "metal dark", tmp_path / "src")
+    path, attenuation = as_display(scene_dir, "inlet", "MONOCHROME2 metal dark", tmp_path / "src")
     with Daemon(settings) as daemon, open_session(connect=list(settings.zenoh.listen)) as s:
         s.declare_subscriber(key("drillnav", "fluoro_shot"), lambda smp: shots.append(msg.FluoroShot.from_bytes(smp.payload.to_bytes())))
         s.declare_subscriber(key("drillnav", "events"), lambda smp: events.append(msg.decode_json(smp.payload.to_bytes())))
@@ -135,9 +149,9 @@ def test_the_daemons_intake_publishes_the_reading_that_shows_the_markers(scene_d
             time.sleep(0.1)
         assert shots, f"no shot published; daemon errors {daemon.errors}"
         deadline = time.monotonic() + 5
-        while not any("read as intensity" in e.get("message", "") for e in events) and time.monotonic() < deadline:
+        while not any("read metal dark" in e.get("message", "") for e in events) and time.monotonic() < deadline:
             time.sleep(0.1)
-    warned = [e for e in events if "read as intensity, metal dark" in e.get("message", "")]
+    warned = [e for e in events if "read metal dark" in e.get("message", "")]
     assert warned and warned[0]["level"] == "warning" and "inlet.dcm" in warned[0]["message"], events
     image = shots[0].image_log.astype(np.float64)
     assert np.corrcoef(attenuation.ravel(), image.ravel())[0, 1] > 0.95  # the shot carries attenuation, metal bright
