@@ -17,7 +17,9 @@ identified is chosen downstream (``service/fluoro_polarity.py``). Either is an
 approximation of the log attenuation: state LIN or LOG on such a C-arm.
 Geometry comes from a calibrated projection-matrix JSON when given (it
 overrides), else from the positioner attributes; anything missing or
-inconsistent is refused with the attribute named.
+inconsistent is refused with the attribute named. An enhanced XA / XRF image
+states its geometry, intensity relationship and rescale per frame (or shared)
+in its functional groups, which are read where the top level lacks them.
 """
 
 from __future__ import annotations
@@ -105,43 +107,80 @@ def _intensifier_sigma_px(ds, pixel_spacing_mm: tuple[float, ...]) -> float:
     return 0.0
 
 
-def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None) -> tuple[CArmView, str]:
+# Where an enhanced XA / XRF image keeps, per frame (or shared by all), what the older XA and XRF modules keep at the
+# top level (PS3.3 C.8.19.6): the functional group's sequence for each attribute, and the enhanced attribute's own
+# keyword where it differs (the source's distance to the isocentre: (0018,1111) in the older modules, (0018,9402) in the
+# X-Ray Geometry Sequence).
+_FUNCTIONAL_GROUP = {
+    "PositionerPrimaryAngle": ("PositionerPositionSequence", "PositionerPrimaryAngle"),
+    "PositionerSecondaryAngle": ("PositionerPositionSequence", "PositionerSecondaryAngle"),
+    "DistanceSourceToDetector": ("XRayGeometrySequence", "DistanceSourceToDetector"),
+    "DistanceSourceToPatient": ("XRayGeometrySequence", "DistanceSourceToIsocenter"),
+    "ImagerPixelSpacing": ("FramePixelDataPropertiesSequence", "ImagerPixelSpacing"),
+    "PixelIntensityRelationship": ("FramePixelDataPropertiesSequence", "PixelIntensityRelationship"),
+    "PixelIntensityRelationshipSign": ("FramePixelDataPropertiesSequence", "PixelIntensityRelationshipSign"),
+    "RescaleSlope": ("PixelValueTransformationSequence", "RescaleSlope"),
+    "RescaleIntercept": ("PixelValueTransformationSequence", "RescaleIntercept"),
+}
+_TAGS = {
+    "PositionerPrimaryAngle": "(0018,1510)",
+    "PositionerSecondaryAngle": "(0018,1511)",
+    "DistanceSourceToDetector": "(0018,1110)",
+    "DistanceSourceToPatient": "(0018,1111)",
+    "ImagerPixelSpacing": "(0018,1164)",
+}
+
+
+def _frame_attribute(ds, frame: int, keyword: str):
+    """``keyword`` of frame ``frame`` (0-based): at the top level (the older XA and XRF modules), else in the frame's
+    own functional group, else in the shared one (enhanced XA and XRF); None where absent."""
+    value = getattr(ds, keyword, None)
+    if value not in (None, "") or keyword not in _FUNCTIONAL_GROUP:
+        return value
+    sequence, enhanced = _FUNCTIONAL_GROUP[keyword]
+    per_frame = getattr(ds, "PerFrameFunctionalGroupsSequence", None) or ()
+    shared = getattr(ds, "SharedFunctionalGroupsSequence", None) or ()
+    for groups in ([per_frame[frame]] if frame < len(per_frame) else []) + list(shared[:1]):
+        items = getattr(groups, sequence, None) or ()
+        value = getattr(items[0], enhanced, None) if items else None
+        if value not in (None, ""):
+            return value
+    return None
+
+
+def _geometry(ds, path: Path, rows: int, cols: int, projection: Path | None, frame: int = 0) -> tuple[CArmView, str]:
     if projection is not None:
         view = read_projection(projection)
         if (view.rows, view.columns) != (rows, cols):
             raise DicomGeometryMissing(f"{projection}: projection matrix is for {view.rows}x{view.columns} but {path.name} is {rows}x{cols}")
         return view, "projection-matrix"
-    needed = {
-        "PositionerPrimaryAngle": "(0018,1510)",
-        "PositionerSecondaryAngle": "(0018,1511)",
-        "DistanceSourceToDetector": "(0018,1110)",
-        "DistanceSourceToPatient": "(0018,1111)",
-        "ImagerPixelSpacing": "(0018,1164)",
-    }
-    for key, tag in needed.items():
-        if getattr(ds, key, None) in (None, ""):
-            raise DicomGeometryMissing(f"{path.name}: missing {key} {tag} and no projection-matrix JSON given")
+    got = {key: _frame_attribute(ds, frame, key) for key in _TAGS}
+    for key, tag in _TAGS.items():
+        if got[key] in (None, ""):
+            sequence, enhanced = _FUNCTIONAL_GROUP[key]
+            where = f" (or {enhanced} in frame {frame + 1}'s {sequence})" if hasattr(ds, "PerFrameFunctionalGroupsSequence") or hasattr(ds, "SharedFunctionalGroupsSequence") else ""
+            raise DicomGeometryMissing(f"{path.name}: missing {key} {tag}{where} and no projection-matrix JSON given")
     position = str(getattr(ds, "PatientPosition", "HFS") or "HFS")
     if position not in SUPINE:
         raise DicomGeometryMissing(f"{path.name}: PatientPosition {position} is not supported without a calibrated projection matrix (supine HFS/FFS only)")
     try:
-        spacing = tuple(float(v) for v in ds.ImagerPixelSpacing)
+        spacing = tuple(float(v) for v in got["ImagerPixelSpacing"])
         view = CArmView.from_positioner(
             distortion_sigma_px=_intensifier_sigma_px(ds, spacing),
-            primary_deg=float(ds.PositionerPrimaryAngle),
-            secondary_deg=float(ds.PositionerSecondaryAngle),
-            source_to_detector_mm=float(ds.DistanceSourceToDetector),
-            source_to_isocenter_mm=float(ds.DistanceSourceToPatient),
+            primary_deg=float(got["PositionerPrimaryAngle"]),
+            secondary_deg=float(got["PositionerSecondaryAngle"]),
+            source_to_detector_mm=float(got["DistanceSourceToDetector"]),
+            source_to_isocenter_mm=float(got["DistanceSourceToPatient"]),
             pixel_spacing_mm=spacing,
             rows=rows,
             columns=cols,
         )
-    except ValueError as exc:
+    except (TypeError, ValueError) as exc:
         raise DicomGeometryMissing(f"{path.name}: inconsistent positioner geometry: {exc}") from None
     return view, "positioner"
 
 
-def _intensity_mapping(ds, name: str) -> str:
+def _intensity_mapping(ds, name: str, frame: int = 0) -> str:
     """How stored values relate to the X-ray intensity: 'attenuation' (log, higher = less intensity), 'log intensity',
     'intensity', 'inverted intensity', or, where the file does not say, 'display' (MONOCHROME2) or 'display, low values
     bright' (MONOCHROME1).
@@ -150,8 +189,8 @@ def _intensity_mapping(ds, name: str) -> str:
     intensity, -1 higher values mean less intensity (PS3.3 C.8.11.3). A stated relationship other than LIN or
     LOG (DISP: processed for display) falls back to the photometric interpretation.
     """
-    relation = str(getattr(ds, "PixelIntensityRelationship", "") or "").strip().upper()
-    raw_sign = getattr(ds, "PixelIntensityRelationshipSign", None)
+    relation = str(_frame_attribute(ds, frame, "PixelIntensityRelationship") or "").strip().upper()
+    raw_sign = _frame_attribute(ds, frame, "PixelIntensityRelationshipSign")
     try:
         sign = None if raw_sign in (None, "") else int(raw_sign)
     except (TypeError, ValueError):
@@ -207,16 +246,20 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     rows, cols = frames.shape[1:]
     if projection is None and p.with_suffix(".json").is_file():
         projection = p.with_suffix(".json")
-    view, geometry_source = _geometry(ds, p, rows, cols, Path(projection) if projection else None)
-    slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
-    intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
-    mapping = _intensity_mapping(ds, p.name)
-    try:
-        view_name = f"p{float(ds.PositionerPrimaryAngle):+.0f}s{float(ds.PositionerSecondaryAngle):+.0f}"
-    except (AttributeError, TypeError, ValueError):
-        view_name = p.stem.replace(".", "_")
     out = []
     for i, frame in enumerate(frames):
+        # An enhanced image states its geometry, intensity relationship and rescale per frame (or shared by all).
+        view, geometry_source = _geometry(ds, p, rows, cols, Path(projection) if projection else None, frame=i)
+        try:
+            slope = float(_frame_attribute(ds, i, "RescaleSlope") or 1.0)
+            intercept = float(_frame_attribute(ds, i, "RescaleIntercept") or 0.0)
+        except (TypeError, ValueError) as exc:
+            raise DicomUnreadable(f"{p.name}: Rescale Slope (0028,1053) / Intercept (0028,1052) of frame {i + 1} is not a number ({exc})") from None
+        mapping = _intensity_mapping(ds, p.name, frame=i)
+        try:
+            view_name = f"p{float(_frame_attribute(ds, i, 'PositionerPrimaryAngle')):+.0f}s{float(_frame_attribute(ds, i, 'PositionerSecondaryAngle')):+.0f}"
+        except (TypeError, ValueError):
+            view_name = p.stem.replace(".", "_")  # every frame of one file without angles: one view, the newest frame standing
         values = frame * slope + intercept
         reading, alternative, alternative_reading = "stated by the file", None, ""
         if mapping == "intensity":
