@@ -247,19 +247,21 @@ def read_fluoro(path: str | Path, *, projection: str | Path | None = None) -> li
     if projection is None and p.with_suffix(".json").is_file():
         projection = p.with_suffix(".json")
     out = []
+    # An enhanced image states its geometry, intensity relationship and rescale per frame; the older modules once for all.
+    per_frame = hasattr(ds, "PerFrameFunctionalGroupsSequence")
     for i, frame in enumerate(frames):
-        # An enhanced image states its geometry, intensity relationship and rescale per frame (or shared by all).
-        view, geometry_source = _geometry(ds, p, rows, cols, Path(projection) if projection else None, frame=i)
-        try:
-            slope = float(_frame_attribute(ds, i, "RescaleSlope") or 1.0)
-            intercept = float(_frame_attribute(ds, i, "RescaleIntercept") or 0.0)
-        except (TypeError, ValueError) as exc:
-            raise DicomUnreadable(f"{p.name}: Rescale Slope (0028,1053) / Intercept (0028,1052) of frame {i + 1} is not a number ({exc})") from None
-        mapping = _intensity_mapping(ds, p.name, frame=i)
-        try:
-            view_name = f"p{float(_frame_attribute(ds, i, 'PositionerPrimaryAngle')):+.0f}s{float(_frame_attribute(ds, i, 'PositionerSecondaryAngle')):+.0f}"
-        except (TypeError, ValueError):
-            view_name = p.stem.replace(".", "_")  # every frame of one file without angles: one view, the newest frame standing
+        if i == 0 or per_frame:
+            view, geometry_source = _geometry(ds, p, rows, cols, Path(projection) if projection else None, frame=i)
+            try:
+                slope = float(_frame_attribute(ds, i, "RescaleSlope") or 1.0)
+                intercept = float(_frame_attribute(ds, i, "RescaleIntercept") or 0.0)
+            except (TypeError, ValueError) as exc:
+                raise DicomUnreadable(f"{p.name}: Rescale Slope (0028,1053) / Intercept (0028,1052) of frame {i + 1} is not a number ({exc})") from None
+            mapping = _intensity_mapping(ds, p.name, frame=i)
+            try:
+                view_name = f"p{float(_frame_attribute(ds, i, 'PositionerPrimaryAngle')):+.0f}s{float(_frame_attribute(ds, i, 'PositionerSecondaryAngle')):+.0f}"
+            except (TypeError, ValueError):
+                view_name = p.stem.replace(".", "_")  # every frame of one file without angles: one view, the newest frame standing
         values = frame * slope + intercept
         reading, alternative, alternative_reading = "stated by the file", None, ""
         if mapping == "intensity":
