@@ -66,7 +66,7 @@ from .transforms import apply, invert
 from .video_fluoro import HORN_MIN_MARKERS, RELIABLE_ANGLE_DEG, RELIABLE_POSITION_MM, DrillRegistration, PredictedError, predicted_axis_error, register_video_to_fluoro
 from .tag_recovery import MIN_SHARE_IN_FRAME, predict_tag_corners, share_in_frame
 from .tracking_covariance import corner_pnp_covariance
-from .video_markers import VideoDetections, VideoMarkerLocator
+from .video_markers import VideoDetections, VideoMarkerLocator, with_markers
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
            "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "NAMED_MAX_FRE_MM", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS",
@@ -439,7 +439,7 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     named = locator.name_among_posed(image, video, wanted)
     if not named:
         return None
-    trial = replace(video, markers=tuple(sorted(video.markers + named, key=lambda m: m.marker_id)))
+    trial = with_markers(video, named)
     try:
         reg = register_video_to_fluoro(trial, every, marker_set, camera, joint=True)
     except DrillnavError:  # the names are not borne out (nothing usable, degenerate, not converged): the frame keeps its own result

@@ -27,7 +27,7 @@ from .tag_search import search_tags
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points", "placed_elsewhere", "PLACED_MARGIN_PX",
-           "RECOVERED_MAX_SQUARE_RMS_PX"]
+           "RECOVERED_MAX_SQUARE_RMS_PX", "DISPLACED_CORNER_CHECK_PX", "with_markers"]
 
 # Two tags of the marker set cannot be confused by a recovery when the registration places them at least this much
 # farther apart than its two predictions can both be off (:func:`placed_elsewhere`): about a quarter of a small
@@ -39,6 +39,17 @@ PLACED_MARGIN_PX = 16.0
 # marker 45, recovered from 147 predictions up to 34 px off): every placement within 2.6 px of the truth fitted its
 # square within 0.49 px, the four 5-9 px off (one edge fitted to the wrong step) at 1.49-2.63 px.
 RECOVERED_MAX_SQUARE_RMS_PX = 1.0
+
+# A tag ArUco decoded whose corners fit a view of its square worse than this RMS, px, is tried from three of its
+# corners (:meth:`VideoMarkerLocator._one_corner_displaced`). Under every camera degradation with the surgeon's
+# markers (twin seeds 5000-5029, 3 poses, 233 decoded tags) 221 fitted within 0.3 px (corners at most 2.65 px off),
+# 11 within 0.3-0.6 px (at most 3.0 px), and the two over 1.5 px had a corner 6.5 and 8.6 px off; a rendered tag
+# with a gloved corner 10 px off fitted within 0.85 px.
+DISPLACED_CORNER_CHECK_PX = 0.5
+# How far (px) the edge search looks about a tag predicted from three of its corners: as far as a recovery from a
+# registration's prediction looks (``VideoMarkerLocator.recover``). The three are not exact either: where the glove's
+# cut is longer, ArUco's outline moves every corner by 5-7 px and the displaced one by 20.
+REPAIR_TOLERANCE_PX = 8.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -74,9 +85,20 @@ class VideoDetections:
     markers: tuple[VideoMarker, ...]
     ignored_ids: tuple[int, ...]
     image_size: tuple[int, int]
+    # Markers of the set whose tag ArUco decoded but whose corners are no view of its square and could not be placed
+    # from three of them (:meth:`VideoMarkerLocator.locate`): not in ``markers``, left for the recovery to find.
+    unplaced_ids: tuple[int, ...] = ()
 
     def by_id(self) -> dict[int, VideoMarker]:
         return {m.marker_id: m for m in self.markers}
+
+
+def with_markers(video: VideoDetections, found: Iterable[VideoMarker]) -> VideoDetections:
+    """``video`` with the markers ``found`` added (a marker placed so is no longer unplaced)."""
+    found = tuple(found)
+    ids = {m.marker_id for m in found}
+    return replace(video, markers=tuple(sorted(video.markers + found, key=lambda m: m.marker_id)),
+                   unplaced_ids=tuple(i for i in video.unplaced_ids if i not in ids))
 
 
 def _dictionary(name: str):
@@ -274,6 +296,7 @@ class VideoMarkerLocator:
         small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA) if w > self.detect_below_px else None
         found: list[VideoMarker] = []
         ignored: list[int] = []
+        unplaced: list[int] = []
         gray_f: NDArray[np.float32] | None = None
         for name, (fine, coarse) in self._detectors.items():
             if small is not None:
@@ -301,8 +324,56 @@ class VideoMarkerLocator:
             for (aruco_id, spec, quad), e in zip(kept, edges):
                 if e is None:
                     e = self._edges_despite_occlusion(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec)
-                found.append(self._pose(spec, quad if e is None else e))
-        return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h))
+                marker = self._pose(spec, quad if e is None else e)
+                if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
+                    # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
+                    # from the other three where its edges and code bear that out and the square fits better; no view
+                    # of its square at all and not so placed, it is left for the recovery to find.
+                    placed = self._one_corner_displaced(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec)
+                    if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px:
+                        marker = placed
+                    elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
+                        unplaced.append(spec.marker_id)
+                        continue
+                found.append(marker)
+        return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h),
+                               unplaced_ids=tuple(sorted(unplaced)))
+
+    def _one_corner_displaced(self, gray: NDArray[np.float32], quad: NDArray[np.float64], *, aruco_id: int, dictionary: str,
+                              spec: _TagSpec) -> VideoMarker | None:
+        """A decoded tag whose corners ``quad`` (4, 2) are no view of its square (RMS over ``RECOVERED_MAX_SQUARE_RMS_PX``):
+        placed from three of them, or None.
+
+        A glove over one corner of a tag leaves ArUco's outline following the glove's edge there: that corner moves
+        by up to tens of pixels while the other three stay (on the operating-room twin, 20 px on a 150 px tag, twin
+        seed 4405; the 4-corner pose it gave was 100 deg off). Each corner is left out in turn; each pose of the
+        tag that puts the other three where they are (P3P: up to four) predicts the whole tag, and the edge search
+        that verifies a recovered tag (:func:`.tag_recovery.recover_tag`: the clean stretches of its edges, a
+        hidden edge placed by the other three, its code cells) looks for it there. Of the placements it accepts,
+        those that are a view of the square within ``RECOVERED_MAX_SQUARE_RMS_PX``, the best fitting is taken.
+        """
+        k, dist = self.camera.camera_matrix, self.camera.distortion
+        best: VideoMarker | None = None
+        for left_out in range(4):
+            keep = [j for j in range(4) if j != left_out]
+            try:
+                _, rvecs, tvecs = cv2.solveP3P(spec.object_points[keep], quad[keep], k, dist, flags=cv2.SOLVEPNP_P3P)
+            except cv2.error:
+                continue
+            for rvec, tvec in zip(rvecs, tvecs):
+                if float(np.ravel(tvec)[2]) <= 0.0:
+                    continue
+                pred = cv2.projectPoints(spec.object_points, rvec, tvec, k, dist)[0].reshape(4, 2)
+                if not np.isfinite(pred).all():
+                    continue
+                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=dictionary, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
+                                  square=lambda steps, pred=pred: self._square_fit(steps, spec=spec, predicted_px=pred))
+                if not got.accepted:
+                    continue
+                marker = self._pose(spec, got.corners_px)
+                if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX and (best is None or marker.reprojection_error_px < best.reprojection_error_px):
+                    best = marker
+        return best
 
     def _edges_despite_occlusion(self, gray: NDArray[np.float32], quad: NDArray[np.float64], *, aruco_id: int, dictionary: str,
                                  spec: _TagSpec) -> NDArray[np.float64] | None:
@@ -387,7 +458,7 @@ class VideoMarkerLocator:
                     break
         if not found:
             return video
-        return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+        return with_markers(video, found)
 
     def _square_fit(self, steps: BorderSteps, *, spec: _TagSpec, predicted_px: NDArray[np.float64]) -> SquareFit | None:
         """A tag with one edge hidden placed by its pose fitted to the other three edges' steps, with this camera and the
@@ -414,7 +485,7 @@ class VideoMarkerLocator:
                 found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
         if not found:
             return video
-        return replace(video, markers=tuple(sorted(video.markers + tuple(found), key=lambda m: m.marker_id)))
+        return with_markers(video, found)
 
     def name_among_posed(self, image: NDArray[np.uint8], video: VideoDetections, marker_ids: Iterable[int]) -> tuple[VideoMarker, ...]:
         """Hypotheses for the tags of ``marker_ids`` (markers posed in fluoroscopy) that ``video`` misses: outlines whose

@@ -359,6 +359,8 @@ class VideoMarkers(_Message):
     image_size: tuple[int, int] = Field(description="frame width, height (px)")
     markers: tuple[VideoTag, ...]
     ignored_ids: tuple[int, ...] = Field((), description="ArUco ids seen that are not in the marker set")
+    unplaced_ids: tuple[int, ...] = Field((), description="markers whose tag was decoded but whose corners are no view of its square "
+                                          "(a glove's edge taken for the tag's) and could not be placed: not in markers, not used")
 
 
 MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers, AuditEntry, VideoMarkers)

@@ -28,6 +28,7 @@ from drillnav.registration.tag_hypotheses import outline_hypotheses
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes
 from drillnav.registration.tag_search import QUADS_PER_HULL, _quads_of_hull, _same_as_any, identify_quad, search_tags
 from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
+from tag_frames import synthetic_tag_frame  # noqa: E402  (tests/: a rendered tag, a glove over it)
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
@@ -194,35 +195,13 @@ def test_candidates_are_one_only_when_their_corners_are():
     assert not _same_as_any(right, np.zeros((0, 4, 2)))
 
 
-def _synthetic_frame(corners_px, *, aruco_id, glove_tag_xy=None, size=(480, 640), seed=0):
-    """A grayscale frame (H, W) with one DICT_6X6_250 tag at ``corners_px`` (4, 2) (TL, TR, BR, BL, its black border's
-    outer corners) on a white base over a mottled background; ``glove_tag_xy``: a polygon in the tag's unit square
-    (x right, y down) painted in a glove's grey over it. Blurred as a lens blurs."""
-    rng = np.random.default_rng(seed)
-    h, w = size
-    frame = cv2.GaussianBlur(rng.normal(110, 25, size=(h, w)), (0, 0), 6)
-    tag = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), aruco_id, 800).astype(np.float64)
-    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)
-    to_frame = cv2.getPerspectiveTransform(unit, np.asarray(corners_px, dtype=np.float32))
-    base = cv2.perspectiveTransform(((unit - 0.5) * 1.6 + 0.5).reshape(-1, 1, 2), to_frame).reshape(-1, 2)
-    cv2.fillConvexPoly(frame, np.round(base * 16).astype(np.int32), 235.0, lineType=cv2.LINE_AA, shift=4)
-    warped = cv2.warpPerspective(tag, to_frame @ np.diag([1 / 800, 1 / 800, 1]), (w, h), flags=cv2.INTER_AREA, borderValue=-1.0)
-    inside = cv2.warpPerspective(np.ones_like(tag), to_frame @ np.diag([1 / 800, 1 / 800, 1]), (w, h), flags=cv2.INTER_AREA)
-    frame = np.where(inside > 0.5, np.clip(warped, 0, 255) * 0.85 + 25, frame)
-    if glove_tag_xy is not None:
-        glove = cv2.perspectiveTransform(np.asarray(glove_tag_xy, dtype=np.float32).reshape(-1, 1, 2), to_frame).reshape(-1, 2)
-        cv2.fillPoly(frame, [np.round(glove * 16).astype(np.int32)], 185.0, lineType=cv2.LINE_AA, shift=4)
-    frame = cv2.GaussianBlur(frame, (0, 0), 1.0) + rng.normal(0, 2.0, size=(h, w))
-    return np.clip(frame, 0, 255).astype(np.uint8)
-
-
 def test_a_tag_with_a_gloved_corner_whose_best_filled_outline_is_not_it_is_found():
     corners = np.array([[250.0, 140.0], [390.0, 160.0], [375.0, 300.0], [235.0, 285.0]])
     # A glove over corner BL (the unit square's (0, 1)) as in the test above, its edge straight: 45 % of the bottom
     # and left edges left in view. Both the search (its code reads in full) and the naming find it.
     slope = 0.55 / 0.55
     glove = [[-0.6, 0.45 - 0.6 * slope], [(1.6 - 0.45) / slope, 1.6], [-0.6, 1.6]]
-    gray = _synthetic_frame(corners, aruco_id=23, glove_tag_xy=glove)
+    gray = synthetic_tag_frame(corners, aruco_id=23, glove_tag_xy=glove)
     detected, _ = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)), gray)
     assert detected == [], "ArUco reads the gloved tag: this frame no longer tests the search"
     found = search_tags(gray, dictionary="DICT_6X6_250", wanted=[5, 23, 40])
@@ -235,9 +214,9 @@ def test_a_tag_with_a_gloved_corner_whose_best_filled_outline_is_not_it_is_found
 
 
 def _search_finds_it_alone(corners, *, aruco_id: int, other_id: int, what: str):
-    """Render one tag at ``corners`` (4, 2) (``_synthetic_frame``), check that ArUco does not read it and that the search,
+    """Render one tag at ``corners`` (4, 2) (``synthetic_tag_frame``), check that ArUco does not read it and that the search,
     asked for it and ``other_id``, finds it alone within 1.5 px at every corner. Returns the frame."""
-    gray = _synthetic_frame(corners, aruco_id=aruco_id)
+    gray = synthetic_tag_frame(corners, aruco_id=aruco_id)
     detected, _ = detect_aruco(cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)), gray)
     assert detected == [], "ArUco reads the tag: this frame no longer tests the search"
     found = search_tags(gray, dictionary="DICT_6X6_250", wanted=[aruco_id, other_id])
