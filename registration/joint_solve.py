@@ -45,7 +45,7 @@ from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_claims import drill_from_marker
-from .video_markers import tag_object_points
+from .video_markers import SQUARE_MISFIT_MIN_PX, tag_object_points
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
            "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX",
@@ -82,8 +82,9 @@ CORNER_SIGMA_PX = 0.3
 # camera degradation (twin seeds 5000-5030, 3 poses, 314 detected tags) the tags with a corner over 1.5 px off
 # misfit their square by 0.07-2.0 px, half of them over 0.33 px; the others by 0.06 px (median), 0.15 px (p90),
 # 0.36 px (p99). A misfit over SQUARE_MISFIT_MIN_PX is charged as extra noise on each of the tag's corners.
+# SQUARE_MISFIT_MIN_PX (0.2 px) is defined beside the tag's pose (video_markers.py), whose repair of a displaced corner
+# also stops at it.
 SQUARE_MISFIT_PER_RMS = float(np.sqrt(2.0))
-SQUARE_MISFIT_MIN_PX = 0.2
 
 
 def square_misfit_noise_px(reprojection_error_px: float) -> float:
