@@ -9,7 +9,7 @@ by the marker's tag offset: ``X_D = camera_from_tag @ (-tag_center_mm)``
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 
 import cv2
@@ -20,7 +20,7 @@ from .aruco_detect import detect_aruco
 from .camera import PinholeCamera
 from .markers import MarkerSet
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
-from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, recover_tag
+from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, fit_tag_edges, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
 from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, outline_hypotheses
 from .tag_search import search_tags
@@ -333,7 +333,9 @@ class VideoMarkerLocator:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
                     # from the other three where its edges and code bear that out and the square fits better; no view
                     # of its square at all and not so placed, it is left for the recovery to find.
-                    placed = self._one_corner_displaced(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec, as_read=marker)
+                    placed = self._one_corner_displaced(quad, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
+                        gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
+                        square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px:
                         marker = placed
                     elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
@@ -343,17 +345,20 @@ class VideoMarkerLocator:
         return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h),
                                unplaced_ids=tuple(sorted(unplaced)))
 
-    def _one_corner_displaced(self, gray: NDArray[np.float32], quad: NDArray[np.float64], *, aruco_id: int, dictionary: str,
-                              spec: _TagSpec, as_read: VideoMarker) -> VideoMarker | None:
-        """A decoded tag whose corners ``quad`` (4, 2) are a poor view of its square (``as_read``, its pose from them, fits
-        worse than ``DISPLACED_CORNER_CHECK_PX``): placed from three of them, or None.
+    def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker,
+                              place: Callable[[NDArray[np.float64]], NDArray[np.float64] | None], corner_sigma_px: float | None = None
+                              ) -> VideoMarker | None:
+        """A tag whose corners ``quad`` (4, 2) are a poor view of its square (``as_read``, its pose from them, fits worse
+        than ``DISPLACED_CORNER_CHECK_PX``): placed from three of them, or None. ``place``: the tag's corners (4, 2) found
+        about a prediction (4, 2), or None; ``corner_sigma_px``: the placed tag's corner noise (None: a detected tag's).
 
         A glove over one corner of a tag leaves ArUco's outline following the glove's edge there: that corner moves
         by up to tens of pixels while the other three stay (on the operating-room twin, 20 px on a 150 px tag, twin
         seed 4405; the 4-corner pose it gave was 100 deg off). Each corner is left out in turn; each pose of the
-        tag that puts the other three where they are (P3P: up to four) predicts the whole tag, and the edge search
-        that verifies a recovered tag (:func:`.tag_recovery.recover_tag`: the clean stretches of its edges, a
-        hidden edge placed by the other three, its code cells) looks for it there. Of the placements it accepts,
+        tag that puts the other three where they are (P3P: up to four) predicts the whole tag, and ``place`` looks
+        for it there: for a decoded tag the edge search that verifies a recovered tag (:func:`.tag_recovery.recover_tag`:
+        the clean stretches of its edges, a hidden edge placed by the other three, its code cells); for an outline named
+        among the posed markers its edges alone (:func:`.tag_recovery.fit_tag_edges`). Of the placements it accepts,
         those that are a view of the square within ``RECOVERED_MAX_SQUARE_RMS_PX``, the best fitting is taken. The
         corner farthest from where ``as_read``'s pose puts it is left out first, and a placement that fits as well as
         a clean tag (within ``SQUARE_MISFIT_MIN_PX``, which the joint solve charges nothing) ends the search. On
@@ -378,11 +383,10 @@ class VideoMarkerLocator:
                 pred = cv2.projectPoints(spec.object_points, rvec, tvec, k, dist)[0].reshape(4, 2)
                 if not np.isfinite(pred).all():
                     continue
-                got = recover_tag(gray, pred, aruco_id=aruco_id, dictionary=dictionary, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
-                                  square=lambda steps, pred=pred: self._square_fit(steps, spec=spec, predicted_px=pred))
-                if not got.accepted:
+                corners = place(pred)
+                if corners is None:
                     continue
-                marker = self._pose(spec, got.corners_px)
+                marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px)
                 if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX and (best is None or marker.reprojection_error_px < best.reprojection_error_px):
                     best = marker
         return best
@@ -511,12 +515,23 @@ class VideoMarkerLocator:
         if not missing:
             return ()
         gray = _gray(image)
+        gray_f: NDArray[np.float32] | None = None
         named: list[VideoMarker] = []
         for name, per, wanted in missing:
             for hyp in outline_hypotheses(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers],
                                           half_above_px=self.detect_below_px):
-                sigma = RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX
-                named.append(replace(self._pose(per[hyp.aruco_id], hyp.corners_px, corner_sigma_px=sigma), named_among_posed=True))
+                spec = per[hyp.aruco_id]
+                marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX)
+                if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
+                    # An outline with one corner on a glove's edge: placed by its edges from three of its corners (the
+                    # name stays a hypothesis).
+                    gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
+                    placed = self._one_corner_displaced(hyp.corners_px, spec=spec, as_read=marker, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX,
+                                                        place=lambda pred, spec=spec: fit_tag_edges(
+                                                            gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
+                                                            square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
+                    marker = placed if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px else marker
+                named.append(replace(marker, named_among_posed=True))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:
