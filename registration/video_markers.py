@@ -333,7 +333,7 @@ class VideoMarkerLocator:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
                     # from the other three where its edges and code bear that out and the square fits better; no view
                     # of its square at all and not so placed, it is left for the recovery to find.
-                    placed = self._one_corner_displaced(quad, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
+                    placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
                         gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
                         square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px:
@@ -362,8 +362,9 @@ class VideoMarkerLocator:
         those that are a view of the square within ``RECOVERED_MAX_SQUARE_RMS_PX``, the best fitting is taken. The
         corner farthest from where ``as_read``'s pose puts it is left out first, and a placement that fits as well as
         a clean tag (within ``SQUARE_MISFIT_MIN_PX``, which the joint solve charges nothing) ends the search. On
-        ``tests/test_tag_displaced_corner.py``'s frames (640x480) the search costs 8-12 ms a gloved tag, 3-7 edge
-        searches; locating the frame 15-20 ms against 3 ms for the tag without its glove.
+        ``tests/test_tag_displaced_corner.py``'s frames (640x480) this costs 3-5 edge searches, 4-6 ms a gloved tag;
+        locating such a frame takes 12-16 ms (its failed edge fit and occlusion fallback included) against 3 ms for
+        the tag without its glove.
         """
         k, dist = self.camera.camera_matrix, self.camera.distortion
         best: VideoMarker | None = None
