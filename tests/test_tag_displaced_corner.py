@@ -24,8 +24,9 @@ from tag_frames import synthetic_tag_frame  # noqa: E402
 from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, fit_tag_edges
-from drillnav.registration.video_markers import (DISPLACED_CORNER_CHECK_PX, RECOVERED_MAX_SQUARE_RMS_PX, VideoDetections, VideoMarkerLocator,
-                                                 tag_object_points)
+from drillnav.registration.video_markers import (DISPLACED_CORNER_CHECK_PX, RECOVERED_MAX_SQUARE_RMS_PX, VideoMarkerLocator, tag_object_points,
+                                                 with_markers)
+from drillnav.schemas import messages as msg
 
 CAMERA = PinholeCamera.from_fov(width=640, height=480, horizontal_fov_deg=76.0)
 CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
@@ -69,6 +70,12 @@ def test_a_tag_whose_corners_are_no_view_of_its_square_and_cannot_be_placed_is_r
     assert as_read.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX
     video = locator.locate(frame)
     assert video.markers == () and video.unplaced_ids == (23,)
+    # As camera/markers carries it (the schema validates it at both ends).
+    wire = msg.VideoMarkers(stamp_ns=1, image_size=video.image_size, markers=(), unplaced_ids=video.unplaced_ids).to_bytes()
+    assert msg.VideoMarkers.from_bytes(wire).unplaced_ids == (23,)
+    # Once the recovery places it, it is no longer unplaced.
+    recovered = with_markers(video, [locator._pose(locator._specs["DICT_6X6_250"][23], truth)])
+    assert [m.marker_id for m in recovered.markers] == [23] and recovered.unplaced_ids == ()
 
 
 def test_a_corner_on_a_gloves_edge_is_placed_by_the_tags_edges_alone():
