@@ -336,7 +336,7 @@ class VideoMarkerLocator:
                     placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
                         gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
                         square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
-                    if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px:
+                    if placed is not None:  # within DISPLACED_CORNER_CHECK_PX: better than the corners that sent it here
                         marker = placed
                     elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
                         unplaced.append(spec.marker_id)
@@ -373,15 +373,13 @@ class VideoMarkerLocator:
         rvec = cv2.Rodrigues(as_read.camera_from_tag[:3, :3])[0]
         fitted = cv2.projectPoints(spec.object_points, rvec, as_read.camera_from_tag[:3, 3], k, dist)[0].reshape(4, 2)
         for left_out in np.argsort(-np.linalg.norm(fitted - quad, axis=1)):
-            if best is not None and best.reprojection_error_px <= SQUARE_MISFIT_MIN_PX:
-                break
             keep = [j for j in range(4) if j != left_out]
             try:
                 _, rvecs, tvecs = cv2.solveP3P(spec.object_points[keep], quad[keep], k, dist, flags=cv2.SOLVEPNP_P3P)
             except cv2.error:
                 continue
             for rvec, tvec in zip(rvecs, tvecs):
-                if float(np.ravel(tvec)[2]) <= 0.0 or (best is not None and best.reprojection_error_px <= SQUARE_MISFIT_MIN_PX):
+                if float(np.ravel(tvec)[2]) <= 0.0:
                     continue
                 pred = cv2.projectPoints(spec.object_points, rvec, tvec, k, dist)[0].reshape(4, 2)
                 if not np.isfinite(pred).all():
@@ -392,6 +390,8 @@ class VideoMarkerLocator:
                 marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px)
                 if marker.reprojection_error_px <= DISPLACED_CORNER_CHECK_PX and (best is None or marker.reprojection_error_px < best.reprojection_error_px):
                     best = marker
+                    if best.reprojection_error_px <= SQUARE_MISFIT_MIN_PX:
+                        return best
         return best
 
     def _edges_despite_occlusion(self, gray: NDArray[np.float32], quad: NDArray[np.float64], *, aruco_id: int, dictionary: str,
@@ -533,7 +533,7 @@ class VideoMarkerLocator:
                                                         place=lambda pred, spec=spec: fit_tag_edges(
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
-                    marker = placed if placed is not None and placed.reprojection_error_px < marker.reprojection_error_px else marker
+                    marker = placed if placed is not None else marker
                 named.append(replace(marker, named_among_posed=True))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
