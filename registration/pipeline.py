@@ -70,6 +70,7 @@ from .video_markers import VideoDetections, VideoMarkerLocator, with_markers
 
 __all__ = ["LiveCalibration", "FrameAxis", "JointRefinement", "ReliableLimits", "track_frame", "joint_refinement", "refinement_fits",
            "refinement_due", "recover_missing_tags", "NAMED_BELOW_MARKERS", "NAMED_MAX_FRE_MM", "predict_missing_tags", "predict_tag_places", "search_missing_tags", "register_with_recovery", "JOINT_PERIOD_NS",
+           "BEAM_SLIDE_MM", "predict_slid_tags",
            "frame_predicted_error"]
 
 JOINT_PERIOD_NS = 500_000_000  # a live frame re-runs the joint solve at least this often (ns)
@@ -87,6 +88,13 @@ NAMED_MAX_FRE_MM = 10.0
 # markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
 # benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
 WEAK_REACH_PX = 24.0
+# A marker posed in one fluoroscopy view has its depth along that view's beam fixed by its BB pattern's scale alone:
+# on the operating-room twin such poses lay up to 15 mm off along it (seeds 4400-7205, the tags the recovery then
+# missed: 17-80 px from their predictions). Its missing tag is also looked for with the marker slid along the beam
+# this far either side (mm; video_claims.SLIDE_MM, the same depth, for its BBs in another view), in steps whose
+# images lie the recovery's reach apart, at most MAX_SLIDE_STEPS a side (:func:`predict_slid_tags`).
+BEAM_SLIDE_MM = 25.0
+MAX_SLIDE_STEPS = 16
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -305,6 +313,58 @@ def predict_tag_places(*, locator: VideoMarkerLocator, camera: PinholeCamera, po
     return places
 
 
+def _one_view_beam(pose: MarkerPose) -> NDArray[np.float64] | None:
+    """(3,) the unit direction in C of the beam through ``pose``'s marker in the one view its BBs were observed in;
+    None when they were observed in two or more views (or none)."""
+    views = {id(o[0]): o[0] for o in pose.observations}
+    if len(views) != 1:
+        return None
+    ray = pose.position_carm_mm - next(iter(views.values())).source_position_mm
+    return ray / np.linalg.norm(ray)
+
+
+def predict_slid_tags(video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...],
+                      marker_set: MarkerSet, carm_from_drill: NDArray[np.float64], tolerance_px: float = 8.0,
+                      slide_mm: float = BEAM_SLIDE_MM) -> dict[int, NDArray[np.float64]]:
+    """{marker id: (K, 4, 2) px}: the missing tags of markers posed (converged) in one fluoroscopy view, predicted
+    through ``camera`` from ``carm_from_drill`` (4, 4) with the marker slid along that view's beam, out to
+    ``slide_mm`` either side of where its BBs put it (each solution fluoroscopy left open), in steps whose images lie
+    at most ``tolerance_px`` apart (the recovery's reach about a prediction), nearest steps first; the place itself is
+    left out (the recovery looked there). Only predictions mostly in the frame (``MIN_SHARE_IN_FRAME``).
+
+    No place vouches for a tag found so (the depth is what is unknown): the caller names it by its code alone.
+    """
+    missing = {p.marker_id for p in _missing(video, poses, locator)}
+    out = {}
+    for p in poses:
+        beam = _one_view_beam(p) if p.marker_id in missing else None
+        if beam is None:
+            continue
+        corners_mm = marker_set.by_id(p.marker_id).tag_corners_mm()
+        tried = []
+        for k, start in enumerate(p.solutions):
+            def at(depth_mm: float, start=start) -> NDArray[np.float64] | None:
+                moved = start.copy()
+                moved[:3, 3] += depth_mm * beam
+                return predict_tag_corners(carm_from_drill=carm_from_drill, carm_from_marker=moved, tag_corners_marker_mm=corners_mm, camera=camera)
+
+            for sign in (1.0, -1.0):
+                # Steps fine enough for the faster end of this side (perspective: the image moves faster nearer the camera).
+                rate = 0.0
+                for d in (0.0, sign * slide_mm):
+                    a, b = at(d - 0.5), at(d + 0.5)
+                    if a is not None and b is not None:
+                        rate = max(rate, float(np.linalg.norm(b.mean(axis=0) - a.mean(axis=0))))
+                n = int(min(np.ceil(slide_mm * rate / tolerance_px), MAX_SLIDE_STEPS))
+                for j in range(1, n + 1):
+                    c = at(sign * j * slide_mm / n)
+                    if c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME:
+                        tried.append((j / n, k, c))
+        if tried:
+            out[p.marker_id] = np.stack([c for _, _, c in sorted(tried, key=lambda t: (t[0], t[1]))])
+    return out
+
+
 def _merged(a: dict[int, NDArray[np.float64]], b: dict[int, NDArray[np.float64]]) -> dict[int, NDArray[np.float64]]:
     """{id: (K_a + K_b, 4, 2)}: two sets of predicted tag corners (a registration's two solutions) stacked per marker."""
     return {i: np.concatenate([c for c in (a.get(i), b.get(i)) if c is not None]) for i in a.keys() | b.keys()}
@@ -350,6 +410,12 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
                                                          carm_from_drill=reg.carm_from_drill, unsettled=True))
             more = locator.recover(image, more, guessed, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=around, by_place=False)
             expected = {**expected, **guessed}
+    if joint and search:
+        # Markers posed in one view whose tags were not where their BBs' depth put them: looked for along that view's
+        # beam, named by their code alone (the joint solve's frames only: up to 2 x MAX_SLIDE_STEPS tries a solution).
+        slid = predict_slid_tags(more, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill)
+        if slid:
+            more = locator.recover(image, more, slid, placed_px=settled, by_place=False)
     return more, expected, weak
 
 
