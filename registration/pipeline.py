@@ -37,7 +37,9 @@ path.
 Tags the detector misses (a glove over a corner, glare on a glossy tag) are looked for where the frame's own
 registration predicts them, and the frame registered again with them (:func:`register_with_recovery`,
 :mod:`.tag_recovery`): only markers posed in fluoroscopy and missing from the frame, so a frame that finds
-every tag pays nothing. A frame that shares no marker with fluoroscopy has no registration to predict from: its
+every tag pays nothing. A marker posed in one fluoroscopy view has its depth along that view's beam fixed by its BB
+pattern's scale alone, so its missing tag is also looked for with the marker slid along that beam
+(:func:`predict_slid_tags`), on the joint solve's frames only. A frame that shares no marker with fluoroscopy has no registration to predict from: its
 missing tags are searched for without a prediction (:func:`search_missing_tags`, :mod:`.tag_search`: tag outlines
 with a part hidden, of which ArUco made no candidate), about 50 ms on a 1280x720 frame, paid only by a frame that
 would otherwise be refused. So is a tag that the registration puts in the frame but that the recovery did not find
@@ -90,10 +92,12 @@ NAMED_MAX_FRE_MM = 10.0
 WEAK_REACH_PX = 24.0
 # A marker posed in one fluoroscopy view has its depth along that view's beam fixed by its BB pattern's scale alone:
 # on the operating-room twin such poses lay up to 15 mm off along it (seeds 4400-7205, the tags the recovery then
-# missed: 17-80 px from their predictions). Its missing tag is also looked for with the marker slid along the beam
+# missed: 17-79 px from their predictions). Its missing tag is also looked for with the marker slid along the beam
 # this far either side (mm; video_claims.SLIDE_MM, the same depth, for its BBs in another view), in steps whose
-# images lie the recovery's reach apart, at most MAX_SLIDE_STEPS a side (:func:`predict_slid_tags`).
+# images lie SLIDE_STEP_PX apart, at most MAX_SLIDE_STEPS a side (:func:`predict_slid_tags`). 12 px: the tag lies
+# within 6 px of a step, inside the recovery's 8 px reach about a prediction.
 BEAM_SLIDE_MM = 25.0
+SLIDE_STEP_PX = 12.0
 MAX_SLIDE_STEPS = 16
 
 
@@ -323,18 +327,28 @@ def _one_view_beam(pose: MarkerPose) -> NDArray[np.float64] | None:
     return ray / np.linalg.norm(ray)
 
 
+def _inside(point_px: NDArray[np.float64], quad_px: NDArray[np.float64]) -> bool:
+    """Whether ``point_px`` (2,) lies inside the convex quadrilateral ``quad_px`` (4, 2), either winding."""
+    edges = np.roll(quad_px, -1, axis=0) - quad_px
+    to_point = point_px - quad_px
+    cross = edges[:, 0] * to_point[:, 1] - edges[:, 1] * to_point[:, 0]
+    return bool(np.all(cross >= 0) or np.all(cross <= 0))
+
+
 def predict_slid_tags(video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera, poses: tuple[MarkerPose, ...],
-                      marker_set: MarkerSet, carm_from_drill: NDArray[np.float64], tolerance_px: float = 8.0,
+                      marker_set: MarkerSet, carm_from_drill: NDArray[np.float64], step_px: float = SLIDE_STEP_PX,
                       slide_mm: float = BEAM_SLIDE_MM) -> dict[int, NDArray[np.float64]]:
     """{marker id: (K, 4, 2) px}: the missing tags of markers posed (converged) in one fluoroscopy view, predicted
     through ``camera`` from ``carm_from_drill`` (4, 4) with the marker slid along that view's beam, out to
     ``slide_mm`` either side of where its BBs put it (each solution fluoroscopy left open), in steps whose images lie
-    at most ``tolerance_px`` apart (the recovery's reach about a prediction), nearest steps first; the place itself is
-    left out (the recovery looked there). Only predictions mostly in the frame (``MIN_SHARE_IN_FRAME``).
+    at most ``step_px`` apart, nearest steps first; the place itself is
+    left out (the recovery looked there). Only predictions mostly in the frame (``MIN_SHARE_IN_FRAME``) and not
+    centred on a tag the frame found.
 
     No place vouches for a tag found so (the depth is what is unknown): the caller names it by its code alone.
     """
     missing = {p.marker_id for p in _missing(video, poses, locator)}
+    found = [m.corners_px for m in video.markers]
     out = {}
     for p in poses:
         beam = _one_view_beam(p) if p.marker_id in missing else None
@@ -355,10 +369,12 @@ def predict_slid_tags(video: VideoDetections, *, locator: VideoMarkerLocator, ca
                     a, b = at(d - 0.5), at(d + 0.5)
                     if a is not None and b is not None:
                         rate = max(rate, float(np.linalg.norm(b.mean(axis=0) - a.mean(axis=0))))
-                n = int(min(np.ceil(slide_mm * rate / tolerance_px), MAX_SLIDE_STEPS))
+                n = int(min(np.ceil(slide_mm * rate / step_px), MAX_SLIDE_STEPS))
                 for j in range(1, n + 1):
                     c = at(sign * j * slide_mm / n)
-                    if c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME:
+                    # A place a found tag holds holds no other tag.
+                    if (c is not None and share_in_frame(c, width=camera.width, height=camera.height) >= MIN_SHARE_IN_FRAME
+                            and not any(_inside(c.mean(axis=0), quad) for quad in found)):
                         tried.append((j / n, k, c))
         if tried:
             out[p.marker_id] = np.stack([c for _, _, c in sorted(tried, key=lambda t: (t[0], t[1]))])

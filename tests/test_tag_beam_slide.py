@@ -1,7 +1,7 @@
 """A missed tag of a marker posed in one fluoroscopy view, looked for along that view's beam.
 
 A marker posed from one view's BBs has its depth along that view's beam fixed only by its BB pattern's scale: on the
-operating-room twin such poses lay 3-15 mm off along it, which put their tags 17-80 px from where the registration
+operating-room twin such poses lay 1.4-15 mm off along it, which put their tags 17-79 px from where the registration
 predicted them, beyond the recovery's 8 px. Tags the detector had missed there, and that the recovery finds from their
 true place, stayed lost. Here seed 5000's outlet view alone poses the markers (the frame of ``twin_images.gloved_frame``),
 one marker's pose is moved 10 mm along the outlet beam, and a highlight clips sixteen cells of its tag's code (the
@@ -22,7 +22,7 @@ from tag_detection import _true_corners  # noqa: E402  (the twin's true corners,
 from drillnav.drivers.sim.scene import render_fluoro
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.pipeline import BEAM_SLIDE_MM, predict_missing_tags, predict_slid_tags, recover_missing_tags, register_with_recovery
+from drillnav.registration.pipeline import BEAM_SLIDE_MM, SLIDE_STEP_PX, predict_missing_tags, predict_slid_tags, recover_missing_tags, register_with_recovery
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 from test_tag_recovery import _glared_code  # noqa: E402  (tests/: the highlight over a tag's code)
 from twin_images import GLOVED_SEED, gloved_frame  # noqa: E402
@@ -79,16 +79,17 @@ def test_the_slid_predictions_reach_the_tag_its_own_prediction_misses(slid_case)
     slid = predict_slid_tags(video, carm_from_drill=reg.carm_from_drill, **kwargs)
     assert SLID_MARKER in slid and not set(slid) & set(video.by_id())  # the frame's missing one-view markers only
     cands = slid[SLID_MARKER]
-    # Nearest steps first, and no hole along the beam: every prediction lies within the recovery's reach of another or of
-    # the marker's own (each solution fluoroscopy left open is slid).
+    # Nearest steps first, and no hole along the beam: every prediction lies within a step of another or of the marker's
+    # own (each solution fluoroscopy left open is slid), and a tag between two steps within the recovery's reach of one.
+    assert SLIDE_STEP_PX / 2 < RECOVERY_TOLERANCE_PX
     centres, owns = cands.mean(axis=1), own.mean(axis=1)
     to_own = np.linalg.norm(centres[:, None] - owns[None], axis=2).min(axis=1)
-    assert to_own[0] <= RECOVERY_TOLERANCE_PX + 1.0 and to_own[0] < np.median(to_own)
+    assert to_own[0] <= SLIDE_STEP_PX + 1.0 and to_own[0] < np.median(to_own)
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.diag(np.full(len(centres), np.inf))
-    assert np.all(np.minimum(gaps.min(axis=1), to_own) <= RECOVERY_TOLERANCE_PX + 1.0)
+    assert np.all(np.minimum(gaps.min(axis=1), to_own) <= SLIDE_STEP_PX + 1.0)
     reach = np.abs(cands - truth).max(axis=(1, 2))
     print(f"slid predictions: {len(cands)}, the nearest {reach.min():.1f} px from the tag (candidate {int(np.argmin(reach))})")
-    assert reach.min() < RECOVERY_TOLERANCE_PX / 2
+    assert reach.min() < SLIDE_STEP_PX / 2 + 1.0
 
 
 def test_the_registration_finds_the_tag_along_the_beam_and_uses_it(slid_case):
