@@ -75,6 +75,20 @@ def camera_frames(scene, *, seed: int, k: int, poses: int) -> list:
     return [(pose, video) for pose, video, _ in camera_shots(scene, seed=seed, k=k, poses=poses)]
 
 
+def study_scenes(*, seeds: int, first_seed: int, poses: int, degradations: Degradations, patient: VoxelAnatomy | None):
+    """The study's scenes as :func:`run` draws them (without its shared caches): per seed and view pair,
+    (seed, pair, scene, {view name: fluoroscopy detections}, :func:`camera_shots`)."""
+    for seed in range(first_seed, first_seed + seeds):
+        rng = np.random.default_rng(seed)
+        for k, (pair, views) in enumerate(_pairs(rng).items()):
+            scene = make_scene(seed=seed, views=views, render=False, degradations=degradations,
+                               voxel_anatomy=patient if degradations.ct_anatomy else None)
+            image_rng = np.random.default_rng([seed, k, 1])
+            dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
+            yield seed, pair, scene, dets, camera_shots(scene, seed=seed, k=k, poses=poses)
+        print(f"seed {seed} done", file=sys.stderr, flush=True)
+
+
 def _locator(scene) -> VideoMarkerLocator:
     return VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
 

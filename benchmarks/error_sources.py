@@ -43,13 +43,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
-from accuracy import CT, _pairs, _register, camera_shots, load_patient  # noqa: E402
+from accuracy import CT, _register, load_patient, study_scenes  # noqa: E402
 from tag_detection import _true_corners  # noqa: E402
 
 from drillnav.drivers.sim.degradations import Degradations
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
 from drillnav.registration.errors import DrillnavError
-from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.markers import MarkerSet
 from drillnav.registration.transforms import apply
@@ -132,17 +131,10 @@ def run(*, seeds: int, first_seed: int, poses: int, n_views: int) -> list[dict]:
     deg = Degradations.parse("all")
     patient = load_patient(CT)
     rows = []
-    for seed in range(first_seed, first_seed + seeds):
-        rng = np.random.default_rng(seed)
-        for k, (pair, views) in enumerate(_pairs(rng).items()):
-            scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient)
-            names = list(scene.views)
-            image_rng = np.random.default_rng([seed, k, 1])
-            dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in names}
-            frames = camera_shots(scene, seed=seed, k=k, poses=poses)
-            for vs in ([names] if n_views == 2 else [[n] for n in names]):
-                rows += [{"seed": seed, "pair": pair, **r} for r in scene_rows(scene, dets, frames, vs)]
-        print(f"seed {seed} done", file=sys.stderr, flush=True)
+    for seed, pair, scene, dets, frames in study_scenes(seeds=seeds, first_seed=first_seed, poses=poses, degradations=deg, patient=patient):
+        names = list(scene.views)
+        for vs in ([names] if n_views == 2 else [[n] for n in names]):
+            rows += [{"seed": seed, "pair": pair, **r} for r in scene_rows(scene, dets, frames, vs)]
     return rows
 
 
