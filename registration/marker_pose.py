@@ -251,10 +251,25 @@ def _try_solve(marker_id: int, observations, max_residual_px: float, alternative
     return good[0] if len(good) == 1 else pose
 
 
+# A marker-view keeps its BBs whose blob is no disc unless this many others pose it (see _paired). On the
+# operating-room twin (seeds 10400-10405, every pair, M = 5, 93 registrations) leaving them out only where five
+# remain moved 16 registrations, 10 nearer the truth (3.0 -> 1.2 mm, 1.4 -> 0.8 mm); leaving them out everywhere,
+# and out of the blobs a marker may claim, lost a lateral view's second marker (0.4 -> 149 mm, flagged).
+MIN_PLACING_BBS = 5
+
+
 def _paired(view: CArmView, marker, bb_index: NDArray[np.int64], marker_set: MarkerSet):
     """(view, design BB centres (N, 3) mm, detected centres (N, 2) px) of ``marker``'s BBs (a
-    :class:`.fluoro_markers.DetectedMarker`) paired with the design by ``bb_index`` (N,); None under 4 paired."""
+    :class:`.fluoro_markers.DetectedMarker`) paired with the design by ``bb_index`` (N,); None under 4 paired.
+
+    A BB whose blob is no disc (:attr:`.fluoro_markers.DetectedBB.places`: merged with a K-wire's or another BB's
+    shadow, cut by the field's edge; its centroid lies pixels off the BB's centre) is left out where at least
+    ``MIN_PLACING_BBS`` others pose the marker; with fewer, every paired BB counts (a steep view's crowded BBs are
+    what poses its marker at all, and the joint solve charges a crowded BB its detector's pull)."""
     ok = bb_index >= 0
+    placing = ok & np.array([b.places for b in marker.bbs], dtype=bool)
+    if placing.sum() >= MIN_PLACING_BBS:
+        ok = placing
     if ok.sum() < 4:
         return None
     obj = marker_set.by_id(marker.marker_id).bb_centers_mm[bb_index[ok]]

@@ -55,7 +55,7 @@ def put_when_matched(session, key_expr: str, payloads, timeout_s: float = 30.0) 
 # them on several workers (`pytest -m compute -n ...`), then the rest in one process, where every wall-clock bound a
 # test states holds on a 2-core machine. tests/test_suite_split.py checks each module listed here against that.
 COMPUTE_MODULES = frozenset({
-    "test_aruco_detect.py", "test_calibration.py", "test_camera_yaml.py", "test_cli_anatomy.py", "test_cli_ct.py", "test_cli_markers.py",
+    "test_aruco_detect.py", "test_bb_shape.py", "test_calibration.py", "test_camera_yaml.py", "test_cli_anatomy.py", "test_cli_ct.py", "test_cli_markers.py",
     "test_cli_register.py", "test_continuity.py", "test_ct_intake.py", "test_ct_registration.py", "test_display_overlays.py",
     "test_few_markers.py", "test_fluoro_candidates.py", "test_fluoro_enhanced.py", "test_loose_rings.py", "test_fluoro_compressed.py", "test_fluoro_hard.py", "test_fluoro_pipeline.py", "test_intensifier.py",
     "test_joint_solve.py", "test_kcr.py", "test_marker_as_built.py", "test_marker_pose_views.py", "test_marker_set_video.py", "test_markers.py",
