@@ -33,7 +33,8 @@ from .fluoro_markers import FluoroDetections
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
-__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "beam_image_px", "MIRROR_RATIO"]
+__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "beam_image_px", "placing_claim", "blob_key", "MIRROR_RATIO",
+           "MIN_CLAIM_PLACING_BBS", "MIN_LONE_CLAIM_PLACING_BBS"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,6 +61,10 @@ class MarkerPose:
     # claimed there. A marker the camera sees but fluoroscopy did not identify (edge-on, ambiguous ring)
     # claims its BBs among them by projection (:mod:`.video_claims`).
     view_blobs: tuple = ()
+    # (view, blob centres (K, 2) px) per view of ``view_blobs``: those of its blobs whose footprint is no disc
+    # (:attr:`.fluoro_markers.DetectedBB.places` False: merged with another BB's, a K-wire's or the ring's shadow). A
+    # claim counts them; its observations leave them out (:func:`placing_claim`).
+    non_disc_blobs: tuple = ()
     # Posed from rings whose BB pattern matched this marker only at the looser cost a second witness allows
     # (:data:`.fluoro_markers.CORROBORATED_MAX_COST_MM`): its identity stands where the camera sees its tag, and
     # nowhere else (:func:`.video_fluoro.register_video_to_fluoro` leaves it out otherwise).
@@ -256,6 +261,36 @@ def _try_solve(marker_id: int, observations, max_residual_px: float, alternative
 # remain moved 16 registrations, 10 nearer the truth (3.0 -> 1.2 mm, 1.4 -> 0.8 mm); leaving them out everywhere,
 # and out of the blobs a marker may claim, lost a lateral view's second marker (0.4 -> 149 mm, flagged).
 MIN_PLACING_BBS = 5
+# A claim (a marker's BBs found by projection in a view that did not identify it, from another view's pose or the
+# camera's constellation) finds its BBs among every blob, and leaves the blobs that are no disc out of its
+# observations where this many round ones remain. Edge-on in a lateral view a marker's BBs merge: on the
+# operating-room twin (seed 10800, AP+lateral) a claimed blob of elongation 1.46 lay 2.94 px off its BB where the
+# other claimed BBs were within 0.1 px (against the twin's distorted truth); left out, the two-view registration went
+# from 1.35 to 0.90 mm off at the entry (docs/identity_and_error.md).
+MIN_CLAIM_PLACING_BBS = 2
+# A claim that is all a marker's fluoroscopy shows (the camera's marker, identified in no view) places it alone: the
+# camera fixes its orientation, and the claimed BBs its position, depth from their spread. There the misshapen blobs
+# are left out only where this many round ones remain: two round BBs of a marker cut by the field's edge placed it
+# 2.2 mm off at the entry where its third, cut blob kept it at 0.6 mm (seeds 10400 and 10802, one view, measured).
+MIN_LONE_CLAIM_PLACING_BBS = 3
+
+
+def blob_key(center_px: NDArray[np.float64]) -> tuple[float, float]:
+    """A blob centre (2,) as a hashable key: the same detection gives the same key wherever it is passed along."""
+    return tuple(np.round(np.asarray(center_px, dtype=np.float64), 3).tolist())
+
+
+def placing_claim(design_mm: NDArray[np.float64], blobs_px: NDArray[np.float64], non_disc: set, *, alone: bool = False
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A claim's design BBs (N, 3) and blob centres (N, 2) without the blobs whose keys (:func:`blob_key`) are in
+    ``non_disc``, where at least :data:`MIN_CLAIM_PLACING_BBS` remain (``alone``, the claim is all the marker's
+    fluoroscopy shows: :data:`MIN_LONE_CLAIM_PLACING_BBS`); as they are otherwise."""
+    if not non_disc:
+        return design_mm, blobs_px
+    keep = np.array([blob_key(c) not in non_disc for c in blobs_px], dtype=bool)
+    if keep.all() or keep.sum() < (MIN_LONE_CLAIM_PLACING_BBS if alone else MIN_CLAIM_PLACING_BBS):
+        return design_mm, blobs_px
+    return np.asarray(design_mm)[keep], np.asarray(blobs_px)[keep]
 
 
 def _paired(view: CArmView, marker, bb_index: NDArray[np.int64], marker_set: MarkerSet):
@@ -339,20 +374,22 @@ def register_markers(
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
     # leaves them free, for the video's identities to claim.
     solved = {p.marker_id for p in poses}
-    claimed = [{tuple(np.round(b.center_px, 3)) for m in det.markers if m.marker_id in solved for b in m.bbs} for det in detections]
-    free = [np.array([b.center_px for b in det.blobs if tuple(np.round(b.center_px, 3)) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
-    view_blobs = tuple(zip(views, free))
+    claimed = [{blob_key(b.center_px) for m in det.markers if m.marker_id in solved for b in m.bbs} for det in detections]
+    free = [np.array([b.center_px for b in det.blobs if blob_key(b.center_px) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
+    non_disc = [{blob_key(b.center_px) for b in det.blobs if not b.places and blob_key(b.center_px) not in claimed[k]} for k, det in enumerate(detections)]
+    blobs = dict(view_blobs=tuple(zip(views, free)),
+                 non_disc_blobs=tuple((v, np.array(sorted(n)).reshape(-1, 2)) for v, n in zip(views, non_disc)))
     if len(views) < 2:
-        return tuple(replace(p, view_blobs=view_blobs) for p in poses)
+        return tuple(replace(p, **blobs) for p in poses)
     # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)
     # claims its BBs there by projection from its pose, then is solved again over both views.
     out = []
     for pose in poses:
         if pose.loose:  # a hypothesis: it claims nothing in the other views before the camera bears it out
-            out.append(replace(pose, view_blobs=view_blobs))
+            out.append(replace(pose, **blobs))
             continue
         design = marker_set.by_id(pose.marker_id).bb_centers_mm
-        claim = dict(views=views, free=free, design=design, max_residual_px=max_residual_px)
+        claim = dict(views=views, free=free, non_disc=non_disc, design=design, max_residual_px=max_residual_px)
         if pose.solution_observations:
             # Its BBs pair two ways: each solution claims in the other views with the BBs its own pairing makes. The
             # right one also finds the BBs the symmetric part lacks; where both find as many, both stay open.
@@ -363,14 +400,15 @@ def register_markers(
             again = _claimed_elsewhere(pose.marker_id, pose.carm_from_marker, pose.observations, pose.solutions, **claim)
             if again is not None and (again.converged or not pose.converged):
                 pose = again
-        out.append(replace(pose, view_blobs=view_blobs))
+        out.append(replace(pose, **blobs))
     return tuple(out)
 
 
-def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations: tuple, slide_starts, *, views, free, design,
+def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations: tuple, slide_starts, *, views, free, non_disc, design,
                        max_residual_px: float) -> MarkerPose | None:
     """The marker solved again over ``observations`` and the BBs it claims among the ``free`` blobs of the views
-    they lack, by projection from ``start`` (4, 4); None when it claims none.
+    they lack, by projection from ``start`` (4, 4), less the claimed blobs that are no disc (``non_disc``: per view,
+    a set of :func:`blob_key`; :func:`placing_claim`); None when it claims none.
 
     Posed in one view, the marker's depth along that view's beam is poorly fixed (4-7 BBs in low dose: 5-12 mm), which
     slides its pattern in another view along that beam's image; and both planar solutions stay open: each of
@@ -390,7 +428,7 @@ def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations:
                 if found is not None:
                     break
         if found is not None:
-            extra.append((view, *found))
+            extra.append((view, *placing_claim(*found, non_disc[k])))
     if not extra:
         return None
     try:

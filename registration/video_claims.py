@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .marker_pose import MarkerPose, beam_image_px, claim_bbs
+from .marker_pose import MarkerPose, beam_image_px, blob_key, claim_bbs, placing_claim
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
@@ -106,8 +106,12 @@ def constellation_fits(anchors: dict[int, tuple], drill_from_marker_: dict[int, 
 
 
 def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...], marker_set: MarkerSet, *,
-                     max_fit_px: float = 8.0, min_bbs: int = 3) -> tuple[MarkerPose, ...]:
+                     max_fit_px: float = 8.0, min_bbs: int = 3, place: bool = True) -> tuple[MarkerPose, ...]:
     """``marker_poses`` with the BBs the camera's markers claim in views where fluoroscopy did not identify them.
+
+    Claims are made among every blob; ``place`` leaves the claimed blobs that are no disc
+    (:attr:`.marker_pose.MarkerPose.non_disc_blobs`) out of the observations the claims add
+    (:func:`.marker_pose.placing_claim`); False keeps them (the claims' count as evidence).
 
     A marker that fluoroscopy did not identify anywhere is added as a new (not converged) :class:`MarkerPose`
     at its predicted pose, with the claimed BBs as its observations; an identified marker gains the views it
@@ -116,10 +120,12 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     identified, or when the constellation does not fit fluoroscopy within ``max_fit_px`` (RMS).
     """
     vids = video.by_id()
-    views = {}
+    views, non_disc = {}, {}
     for p in marker_poses:
         for view, blobs in p.view_blobs:
             views.setdefault(id(view), (view, blobs))
+        for view, centres in p.non_disc_blobs:
+            non_disc.setdefault(id(view), {blob_key(c) for c in centres})
     by_id = {p.marker_id: p for p in marker_poses}
     in_set = set(marker_set.ids)
     anchors = {i: p.observations for i, p in by_id.items() if i in vids and (p.observations or p.solution_observations)}
@@ -152,6 +158,9 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     carm_from_drill, claims = best
     if not claims:
         return marker_poses
+    if place:
+        claims = {i: [(view, *placing_claim(obj, img, non_disc.get(id(view), set()), alone=not (i in by_id and by_id[i].observations)))
+                      for view, obj, img in per] for i, per in claims.items()}
     out = []
     for p in marker_poses:
         extra = claims.pop(p.marker_id, [])
@@ -161,7 +170,8 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     for i, extra in sorted(claims.items()):
         out.append(MarkerPose(marker_id=i, carm_from_marker=carm_from_drill @ d_from_m[i], residual_px=float("nan"),
                               n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,
-                              observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs))
+                              observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs,
+                              non_disc_blobs=next(iter(by_id.values())).non_disc_blobs))
     return tuple(out)
 
 
@@ -189,16 +199,16 @@ def corroborate_loose(video: VideoDetections, marker_poses: tuple[MarkerPose, ..
         if hyp.marker_id not in vids:
             continue
         anchor = replace(hyp, loose=False)
-        got = claim_from_video(video, tuple(marker_poses) + (anchor,), marker_set)
+        got = claim_from_video(video, tuple(marker_poses) + (anchor,), marker_set, place=False)
         own = sum(len(o[1]) for o in anchor.observations)
-        scored.append((sum(len(o[1]) for p in got for o in p.observations) - before - own, hyp.marker_id, got))
+        scored.append((sum(len(o[1]) for p in got for o in p.observations) - before - own, hyp.marker_id, anchor))
     if not scored:
         return tuple(marker_poses)
     scored.sort(key=lambda s: -s[0])
     best = scored[0]
     if best[0] < LOOSE_MIN_CLAIMED_BBS or (len(scored) > 1 and scored[1][0] >= best[0]):
         return tuple(marker_poses)
-    return best[2]
+    return claim_from_video(video, tuple(marker_poses) + (best[2],), marker_set)
 
 
 def _count(claims: dict[int, list]) -> int:
