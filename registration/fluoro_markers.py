@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from .carm import REFERENCE_PIXEL_MM, CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
 
-__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range"]
+__all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range", "blob_key"]
 
 
 # A sphere's shadow is a disc: the principal axes of a BB's half-maximum footprint agree (on the operating-room twin,
@@ -31,6 +31,11 @@ __all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "
 # centroid does not place the BB: it still counts for identifying its marker, and poses it only where too few others
 # would (:data:`.marker_pose.MIN_PLACING_BBS`).
 MAX_BB_ELONGATION = 1.2
+
+
+def blob_key(center_px: NDArray[np.float64]) -> tuple[float, float]:
+    """A blob centre (2,) as a hashable key: the same detection gives the same key wherever it is passed along."""
+    return tuple(np.round(np.asarray(center_px, dtype=np.float64), 3).tolist())
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -497,8 +502,8 @@ def _one_ring(found: list[DetectedMarker]) -> DetectedMarker | None:
     """Detections of one id: the best-fitting one when all are pieces of one ring (each shares at least 3 BB centres
     with it), None when they lie on different BBs (two rings claiming one identity)."""
     best = min(found, key=lambda m: m.identification_cost_mm)
-    own = {tuple(np.round(b.center_px, 3)) for b in best.bbs}
-    return best if all(len(own & {tuple(np.round(b.center_px, 3)) for b in m.bbs}) >= 3 for m in found) else None
+    own = {blob_key(b.center_px) for b in best.bbs}
+    return best if all(len(own & {blob_key(b.center_px) for b in m.bbs}) >= 3 for m in found) else None
 
 
 def _merge_split_rings(markers: list[DetectedMarker]) -> tuple[list[DetectedMarker], list[RejectedRing]]:

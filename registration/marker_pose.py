@@ -29,11 +29,11 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .carm import REFERENCE_PIXEL_MM, CArmView
-from .fluoro_markers import FluoroDetections
+from .fluoro_markers import FluoroDetections, blob_key
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 
-__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "beam_image_px", "placing_claim", "blob_key", "MIRROR_RATIO",
+__all__ = ["MarkerPose", "register_markers", "planar_candidates", "claim_bbs", "beam_image_px", "placing_claim", "MIRROR_RATIO",
            "MIN_CLAIM_PLACING_BBS", "MIN_LONE_CLAIM_PLACING_BBS"]
 
 
@@ -275,14 +275,9 @@ MIN_CLAIM_PLACING_BBS = 2
 MIN_LONE_CLAIM_PLACING_BBS = 3
 
 
-def blob_key(center_px: NDArray[np.float64]) -> tuple[float, float]:
-    """A blob centre (2,) as a hashable key: the same detection gives the same key wherever it is passed along."""
-    return tuple(np.round(np.asarray(center_px, dtype=np.float64), 3).tolist())
-
-
 def placing_claim(design_mm: NDArray[np.float64], blobs_px: NDArray[np.float64], non_disc: set, *, alone: bool = False
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """A claim's design BBs (N, 3) and blob centres (N, 2) without the blobs whose keys (:func:`blob_key`) are in
+    """A claim's design BBs (N, 3) and blob centres (N, 2) without the blobs whose keys (:func:`.fluoro_markers.blob_key`) are in
     ``non_disc``, where at least :data:`MIN_CLAIM_PLACING_BBS` remain (``alone``, the claim is all the marker's
     fluoroscopy shows: :data:`MIN_LONE_CLAIM_PLACING_BBS`); as they are otherwise."""
     if not non_disc:
@@ -408,7 +403,7 @@ def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations:
                        max_residual_px: float) -> MarkerPose | None:
     """The marker solved again over ``observations`` and the BBs it claims among the ``free`` blobs of the views
     they lack, by projection from ``start`` (4, 4), less the claimed blobs that are no disc (``non_disc``: per view,
-    a set of :func:`blob_key`; :func:`placing_claim`); None when it claims none.
+    a set of :func:`.fluoro_markers.blob_key`; :func:`placing_claim`); None when it claims none.
 
     Posed in one view, the marker's depth along that view's beam is poorly fixed (4-7 BBs in low dose: 5-12 mm), which
     slides its pattern in another view along that beam's image; and both planar solutions stay open: each of

@@ -22,7 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .marker_pose import MarkerPose, beam_image_px, blob_key, claim_bbs, placing_claim
+from .fluoro_markers import blob_key
+from .marker_pose import MarkerPose, beam_image_px, claim_bbs, placing_claim
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections

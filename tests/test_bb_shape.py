@@ -11,7 +11,7 @@ import pytest
 
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration import marker_pose
-from drillnav.registration.fluoro_markers import MAX_BB_ELONGATION, DetectedBB, DetectedMarker, FluoroDetections, detect_in_view
+from drillnav.registration.fluoro_markers import MAX_BB_ELONGATION, DetectedBB, DetectedMarker, FluoroDetections, blob_key, detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.transforms import apply
 
@@ -143,10 +143,10 @@ def test_a_claimed_blob_that_is_no_disc_is_claimed_but_does_not_place_its_bb(mon
 def test_a_claim_keeps_its_misshapen_blobs_when_too_few_round_ones_remain():
     design = np.arange(9.0).reshape(3, 3)
     blobs = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]])
-    odd = {marker_pose.blob_key(blobs[1]), marker_pose.blob_key(blobs[2])}
+    odd = {blob_key(blobs[1]), blob_key(blobs[2])}
     obj, img = marker_pose.placing_claim(design, blobs, odd)
     assert len(img) == 3  # one round blob left: below MIN_CLAIM_PLACING_BBS, the claim stays whole
-    obj, img = marker_pose.placing_claim(design, blobs, {marker_pose.blob_key(blobs[1])})
+    obj, img = marker_pose.placing_claim(design, blobs, {blob_key(blobs[1])})
     assert np.allclose(img, blobs[[0, 2]]) and np.allclose(obj, design[[0, 2]])
     obj, img = marker_pose.placing_claim(design, blobs, set())
     assert len(img) == 3
