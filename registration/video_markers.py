@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from .aruco_detect import detect_aruco
 from .camera import PinholeCamera
 from .markers import MarkerSet
+from .tag_border import border_shift_px, code_cells, moved_outline
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
 from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, fit_tag_edges, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
@@ -251,6 +252,8 @@ class _TagSpec:
     marker_id: int
     object_points: NDArray[np.float64]  # (4, 3) tag corners in the tag frame
     bb_tag_mm: NDArray[np.float64]      # (3,) the central BB in the tag frame
+    dictionary: str                     # the ArUco dictionary and id the tag is printed with
+    aruco_id: int
 
 
 class VideoMarkerLocator:
@@ -259,7 +262,8 @@ class VideoMarkerLocator:
     With ``marker_set`` (markers.json), every marker's own ArUco dictionary, ArUco id, tag size and tag
     offset are used (the tag frame has the marker's axes, its origin at the marker's ``tag_center_mm``);
     otherwise one ``dictionary``, ``tag_size_mm`` and ``tag_to_bb_offset_mm`` for ``marker_ids``, ArUco id =
-    marker id.
+    marker id. ``border_shift``: each tag's outline is moved to where the width of its black border puts it
+    (:mod:`.tag_border`: an over-exposed or blurred frame's steps lie inside the truth); False keeps the edges' steps.
     """
 
     def __init__(
@@ -273,8 +277,10 @@ class VideoMarkerLocator:
         corner_sigma_px: float = 0.1,
         detect_below_px: int = 800,
         marker_set: MarkerSet | None = None,
+        border_shift: bool = True,
     ) -> None:
         self.camera = camera
+        self.border_shift = bool(border_shift)
         self.corner_sigma_px = float(corner_sigma_px)
         self.detect_below_px = detect_below_px
         specs: dict[str, dict[int, _TagSpec]] = {}
@@ -283,10 +289,11 @@ class VideoMarkerLocator:
                 per_dict = specs.setdefault(m.aruco_dictionary, {})
                 if m.aruco_id in per_dict:
                     raise ValueError(f"markers {per_dict[m.aruco_id].marker_id} and {m.marker_id} share ArUco id {m.aruco_id} of {m.aruco_dictionary}")
-                per_dict[m.aruco_id] = _TagSpec(m.marker_id, tag_object_points(m.tag_size_mm), -np.asarray(m.tag_center_mm, dtype=np.float64))
+                per_dict[m.aruco_id] = _TagSpec(m.marker_id, tag_object_points(m.tag_size_mm), -np.asarray(m.tag_center_mm, dtype=np.float64),
+                                                m.aruco_dictionary, m.aruco_id)
         else:
             bb_tag = np.array([0.0, 0.0, -float(tag_to_bb_offset_mm)])
-            specs[dictionary] = {int(i): _TagSpec(int(i), tag_object_points(float(tag_size_mm)), bb_tag) for i in marker_ids}
+            specs[dictionary] = {int(i): _TagSpec(int(i), tag_object_points(float(tag_size_mm)), bb_tag, dictionary, int(i)) for i in marker_ids}
         self._specs = specs
         self.marker_ids = frozenset(spec.marker_id for per in specs.values() for spec in per.values())
         # Large frames are searched at half resolution (4x fewer pixels) and the corners refined at full resolution.
@@ -328,12 +335,12 @@ class VideoMarkerLocator:
             for (aruco_id, spec, quad), e in zip(kept, edges):
                 if e is None:
                     e = self._edges_despite_occlusion(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec)
-                marker = self._pose(spec, quad if e is None else e)
+                marker = self._pose(spec, quad if e is None else e, gray=gray_f)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
                     # from the other three where its edges and code bear that out and the square fits better; no view
                     # of its square at all and not so placed, it is left for the recovery to find.
-                    placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
+                    placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, gray=gray_f, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
                         gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
                         square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     if placed is not None:  # within DISPLACED_CORNER_CHECK_PX: better than the corners that sent it here
@@ -345,7 +352,7 @@ class VideoMarkerLocator:
         return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h),
                                unplaced_ids=tuple(sorted(unplaced)))
 
-    def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker,
+    def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker, gray: NDArray[np.float32],
                               place: Callable[[NDArray[np.float64]], NDArray[np.float64] | None], corner_sigma_px: float | None = None
                               ) -> VideoMarker | None:
         """A tag whose corners ``quad`` (4, 2) are a poor view of its square (``as_read``, its pose from them, fits worse
@@ -387,7 +394,7 @@ class VideoMarkerLocator:
                 corners = place(pred)
                 if corners is None:
                     continue
-                marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px)
+                marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px, gray=gray)
                 if marker.reprojection_error_px <= DISPLACED_CORNER_CHECK_PX and (best is None or marker.reprojection_error_px < best.reprojection_error_px):
                     best = marker
                     if best.reprojection_error_px <= SQUARE_MISFIT_MIN_PX:
@@ -460,7 +467,7 @@ class VideoMarkerLocator:
                                   partial=True, square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if not got.accepted:
                     return None
-                marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX)
+                marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray)
                 # Four corners that are no view of the tag's square (an edge's line fitted to a glove's or a code cell's
                 # step) are no tag there.
                 return marker if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX else None
@@ -497,11 +504,13 @@ class VideoMarkerLocator:
         if not missing:
             return video
         gray = _gray(image)
+        gray_f: NDArray[np.float32] | None = None
         found: list[VideoMarker] = []
         for name, per, wanted in missing:
             for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)],
                                    half_above_px=self.detect_below_px, rivals=list(per)):
-                found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX))
+                gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
+                found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray_f))
         if not found:
             return video
         return with_markers(video, found)
@@ -524,12 +533,13 @@ class VideoMarkerLocator:
             for hyp in outline_hypotheses(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers],
                                           half_above_px=self.detect_below_px):
                 spec = per[hyp.aruco_id]
-                marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX)
+                gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
+                marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX,
+                                    gray=gray_f)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # An outline with one corner on a glove's edge: placed by its edges from three of its corners (the
                     # name stays a hypothesis).
-                    gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
-                    placed = self._one_corner_displaced(hyp.corners_px, spec=spec, as_read=marker, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX,
+                    placed = self._one_corner_displaced(hyp.corners_px, spec=spec, as_read=marker, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray_f,
                                                         place=lambda pred, spec=spec: fit_tag_edges(
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
@@ -547,7 +557,15 @@ class VideoMarkerLocator:
                 missing.append((name, per, wanted))
         return missing
 
-    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
+    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None,
+              gray: NDArray[np.float32] | None = None) -> VideoMarker:
+        """The marker's pose from its tag's corners (4, 2); with the frame ``gray`` (float32), the outline first moved to
+        where the width of the tag's black border puts it (:func:`.tag_border.border_shift_px`; not with
+        ``border_shift`` False)."""
+        if gray is not None and self.border_shift:
+            shift, profiles = border_shift_px(gray, corners, code_cells(spec.dictionary, spec.aruco_id))
+            if profiles:
+                corners = moved_outline(corners, shift)
         k, dist = self.camera.camera_matrix, self.camera.distortion
         obj = spec.object_points
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)

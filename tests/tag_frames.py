@@ -4,10 +4,11 @@ import cv2
 import numpy as np
 
 
-def synthetic_tag_frame(corners_px, *, aruco_id, glove_tag_xy=None, size=(480, 640), seed=0):
+def synthetic_tag_frame(corners_px, *, aruco_id, glove_tag_xy=None, size=(480, 640), seed=0, blur_px=1.0, gain=1.0):
     """A grayscale frame (H, W) with one DICT_6X6_250 tag at ``corners_px`` (4, 2) (TL, TR, BR, BL, its black border's
     outer corners) on a white base over a mottled background; ``glove_tag_xy``: a polygon in the tag's unit square
-    (x right, y down) painted in a glove's grey over it. Blurred as a lens blurs."""
+    (x right, y down) painted in a glove's grey over it. Blurred as a lens blurs (Gaussian, ``blur_px``), then
+    exposed with ``gain`` (over about 1.1 the white base clips at 255)."""
     rng = np.random.default_rng(seed)
     h, w = size
     frame = cv2.GaussianBlur(rng.normal(110, 25, size=(h, w)), (0, 0), 6)
@@ -22,5 +23,5 @@ def synthetic_tag_frame(corners_px, *, aruco_id, glove_tag_xy=None, size=(480, 6
     if glove_tag_xy is not None:
         glove = cv2.perspectiveTransform(np.asarray(glove_tag_xy, dtype=np.float32).reshape(-1, 1, 2), to_frame).reshape(-1, 2)
         cv2.fillPoly(frame, [np.round(glove * 16).astype(np.int32)], 185.0, lineType=cv2.LINE_AA, shift=4)
-    frame = cv2.GaussianBlur(frame, (0, 0), 1.0) + rng.normal(0, 2.0, size=(h, w))
+    frame = gain * cv2.GaussianBlur(frame, (0, 0), blur_px) + rng.normal(0, 2.0, size=(h, w))
     return np.clip(frame, 0, 255).astype(np.uint8)
