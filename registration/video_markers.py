@@ -335,12 +335,12 @@ class VideoMarkerLocator:
             for (aruco_id, spec, quad), e in zip(kept, edges):
                 if e is None:
                     e = self._edges_despite_occlusion(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec)
-                marker = self._pose(spec, quad if e is None else e, gray=gray_f)
+                marker = self._pose(spec, quad if e is None else e)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
                     # from the other three where its edges and code bear that out and the square fits better; no view
                     # of its square at all and not so placed, it is left for the recovery to find.
-                    placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, gray=gray_f, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
+                    placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
                         gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
                         square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     if placed is not None:  # within DISPLACED_CORNER_CHECK_PX: better than the corners that sent it here
@@ -348,11 +348,11 @@ class VideoMarkerLocator:
                     elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
                         unplaced.append(spec.marker_id)
                         continue
-                found.append(marker)
+                found.append(self._border_shifted(marker, spec=spec, gray=gray_f))
         return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h),
                                unplaced_ids=tuple(sorted(unplaced)))
 
-    def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker, gray: NDArray[np.float32],
+    def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker,
                               place: Callable[[NDArray[np.float64]], NDArray[np.float64] | None], corner_sigma_px: float | None = None
                               ) -> VideoMarker | None:
         """A tag whose corners ``quad`` (4, 2) are a poor view of its square (``as_read``, its pose from them, fits worse
@@ -394,7 +394,7 @@ class VideoMarkerLocator:
                 corners = place(pred)
                 if corners is None:
                     continue
-                marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px, gray=gray)
+                marker = self._pose(spec, corners, corner_sigma_px=corner_sigma_px)
                 if marker.reprojection_error_px <= DISPLACED_CORNER_CHECK_PX and (best is None or marker.reprojection_error_px < best.reprojection_error_px):
                     best = marker
                     if best.reprojection_error_px <= SQUARE_MISFIT_MIN_PX:
@@ -467,10 +467,10 @@ class VideoMarkerLocator:
                                   partial=True, square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred))
                 if not got.accepted:
                     return None
-                marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray)
+                marker = self._pose(spec, got.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX)
                 # Four corners that are no view of the tag's square (an edge's line fitted to a glove's or a code cell's
                 # step) are no tag there.
-                return marker if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX else None
+                return self._border_shifted(marker, spec=spec, gray=gray) if marker.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX else None
 
             for k, pred in enumerate(p + shift for shift in steps for p in preds):
                 got = attempt(pred)
@@ -510,7 +510,8 @@ class VideoMarkerLocator:
             for tag in search_tags(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers + tuple(found)],
                                    half_above_px=self.detect_below_px, rivals=list(per)):
                 gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
-                found.append(self._pose(per[tag.aruco_id], tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray_f))
+                spec = per[tag.aruco_id]
+                found.append(self._border_shifted(self._pose(spec, tag.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX), spec=spec, gray=gray_f))
         if not found:
             return video
         return with_markers(video, found)
@@ -534,17 +535,16 @@ class VideoMarkerLocator:
                                           half_above_px=self.detect_below_px):
                 spec = per[hyp.aruco_id]
                 gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
-                marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX,
-                                    gray=gray_f)
+                marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # An outline with one corner on a glove's edge: placed by its edges from three of its corners (the
                     # name stays a hypothesis).
-                    placed = self._one_corner_displaced(hyp.corners_px, spec=spec, as_read=marker, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray_f,
+                    placed = self._one_corner_displaced(hyp.corners_px, spec=spec, as_read=marker, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX,
                                                         place=lambda pred, spec=spec: fit_tag_edges(
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     marker = placed if placed is not None else marker
-                named.append(replace(marker, named_among_posed=True))
+                named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:
@@ -557,15 +557,20 @@ class VideoMarkerLocator:
                 missing.append((name, per, wanted))
         return missing
 
-    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None,
-              gray: NDArray[np.float32] | None = None) -> VideoMarker:
-        """The marker's pose from its tag's corners (4, 2); with the frame ``gray`` (float32), the outline first moved to
-        where the width of the tag's black border puts it (:func:`.tag_border.border_shift_px`; not with
-        ``border_shift`` False)."""
-        if gray is not None and self.border_shift:
-            shift, profiles = border_shift_px(gray, corners, code_cells(spec.dictionary, spec.aruco_id))
-            if profiles:
-                corners = moved_outline(corners, shift)
+    def _border_shifted(self, marker: VideoMarker, *, spec: _TagSpec, gray: NDArray[np.float32]) -> VideoMarker:
+        """``marker`` posed again from its outline moved to where the width of its tag's black border puts it
+        (:func:`.tag_border.border_shift_px`: a tag whose white base clips), or ``marker`` itself (not measured, or
+        ``border_shift`` False). Applied to a marker once it is accepted: the checks that accept it (a view of its
+        square, a corner displaced by a glove) judge the outline its steps gave."""
+        if not self.border_shift:
+            return marker
+        shift, profiles = border_shift_px(gray, marker.corners_px, code_cells(spec.dictionary, spec.aruco_id))
+        if not profiles:
+            return marker
+        moved = self._pose(spec, moved_outline(marker.corners_px, shift), corner_sigma_px=marker.corner_sigma_px if marker.recovered else None)
+        return replace(moved, named_among_posed=marker.named_among_posed)
+
+    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
         k, dist = self.camera.camera_matrix, self.camera.distortion
         obj = spec.object_points
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)

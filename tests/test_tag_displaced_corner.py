@@ -87,7 +87,7 @@ def test_a_corner_on_a_gloves_edge_is_placed_by_the_tags_edges_alone():
     quad = detect_aruco(locator._detectors["DICT_6X6_250"][0], frame)[1][0].reshape(4, 2).astype(np.float64)
     as_read = locator._pose(spec, quad, corner_sigma_px=3.0)
     gray = frame.astype(np.float32)
-    placed = locator._one_corner_displaced(quad, spec=spec, as_read=as_read, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX, gray=gray,
+    placed = locator._one_corner_displaced(quad, spec=spec, as_read=as_read, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX,
                                            place=lambda pred: fit_tag_edges(gray, pred, tolerance_px=8.0, partial=True).corners_px)
     assert placed is not None and placed.corner_sigma_px == RECOVERED_CORNER_SIGMA_PX
     err = np.linalg.norm(placed.corners_px - truth, axis=1)
