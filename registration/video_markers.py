@@ -263,7 +263,7 @@ class VideoMarkerLocator:
     offset are used (the tag frame has the marker's axes, its origin at the marker's ``tag_center_mm``);
     otherwise one ``dictionary``, ``tag_size_mm`` and ``tag_to_bb_offset_mm`` for ``marker_ids``, ArUco id =
     marker id. ``border_shift``: each tag's outline is moved to where the width of its black border puts it
-    (:mod:`.tag_border`: an over-exposed or blurred frame's steps lie inside the truth); False keeps the edges' steps.
+    (:mod:`.tag_border`: where a tag's white base clips, its edges' steps lie inside the truth); False keeps the steps.
     """
 
     def __init__(
