@@ -32,9 +32,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .tag_edges import step_positions
+from .tag_edges import edge_corners, step_positions
 
-__all__ = ["code_cells", "border_shift_px", "moved_outline", "MIN_BORDER_PROFILES", "MIN_CELL_PX", "MAX_SHIFT_CELLS"]
+__all__ = ["code_cells", "border_shift_px", "moved_outline", "MIN_BORDER_PROFILES", "MIN_CELL_PX", "MAX_SHIFT_CELLS", "CLIPPED_LEVEL",
+           "MIN_CLIPPED_SHARE"]
 
 # Profiles a shift needs: a tag with few white cells along its border (or most of them hidden) keeps its corners.
 MIN_BORDER_PROFILES = 8
@@ -89,8 +90,8 @@ def _profiles(white_bytes: bytes, g: int) -> NDArray[np.float64]:
 
 
 def border_shift_px(gray: NDArray[np.float32], corners_px: NDArray[np.float64], white: NDArray[np.bool_]) -> tuple[float, int]:
-    """How far (px) the tag's true outline lies inward of the one ``corners_px`` (4, 2) put (negative: outward: the
-    usual case, an over-exposed or blurred frame), and the number of profiles it rests on (0: not measured).
+    """How far (px) the tag's true outline lies inward of the one ``corners_px`` (4, 2) put (negative: outward, the
+    case of a clipped base), and the number of profiles it rests on (0: not measured).
 
     gray : (H, W) float32 frame. white : (g, g) :func:`code_cells`.
     """
@@ -131,17 +132,17 @@ def border_shift_px(gray: NDArray[np.float32], corners_px: NDArray[np.float64], 
     if ok.sum() < MIN_BORDER_PROFILES:
         return 0.0, 0
 
+    # Each profile is a straight segment in the image (a homography keeps lines), but its canonical parameter is not
+    # linear in px: depths are mapped through the homography and measured along the segment.
+    first, last = canon_pts[inside, 0], canon_pts[inside, -1]
+    start, along = img[:, 0], img[:, -1] - img[:, 0]
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+
     def at(u: NDArray[np.float64]) -> NDArray[np.float64]:
         """px along each profile from its first sample to canonical depth ``u`` (per profile)."""
-        start = img[:, 0]
-        end = img[:, -1]
-        frac = (np.asarray(u, dtype=np.float64) - t[0]) / (t[-1] - t[0])
-        # the profile is a straight segment in the image (a homography keeps lines); its parameter is not linear in
-        # px, so the points are mapped and measured
-        rows = np.nonzero(inside)[0]
-        q = canon_pts[rows, 0] + (canon_pts[rows, -1] - canon_pts[rows, 0]) * frac[:, None]
+        q = first + (last - first) * ((np.asarray(u, dtype=np.float64) - t[0]) / (t[-1] - t[0]))[:, None]
         qi = cv2.perspectiveTransform(q.reshape(1, -1, 2), homography).reshape(-1, 2)
-        return np.sum((qi - start) * (end - start), axis=1) / np.linalg.norm(end - start, axis=1)
+        return np.sum((qi - start) * along, axis=1)
 
     a_px, b_px = at(a), at(b)
     e0, e1 = at(np.zeros(len(a))), at(np.ones(len(a)))
@@ -162,10 +163,5 @@ def moved_outline(corners_px: NDArray[np.float64], inward_px: float) -> NDArray[
     d = (nxt - q) / np.linalg.norm(nxt - q, axis=1, keepdims=True)          # side k: corner k -> k + 1
     n = np.stack([-d[:, 1], d[:, 0]], axis=1)
     n *= np.sign(np.sum((centre - (q + nxt) / 2) * n, axis=1))[:, None]    # inward normals
-    p = q + inward_px * n                                                  # a point on each moved side
-    out = np.empty((4, 2))
-    for k in range(4):
-        p1, d1, p2, d2 = p[k - 1], d[k - 1], p[k], d[k]                     # corner k: sides k - 1 and k
-        st = np.linalg.solve(np.array([d1, -d2]).T, p2 - p1)
-        out[k] = p1 + st[0] * d1
-    return out
+    corners, _ = edge_corners((q + inward_px * n)[None], d[None])           # corner k: sides k - 1 and k, moved
+    return corners[0]
