@@ -20,6 +20,9 @@ for there:
 2. The identity is verified by reading the code cells that can be read: a saturated cell, a cell beside a
    saturated one (a highlight's halo lifts a black cell), a cell whose samples straddle two levels (an occluder's
    boundary) or one in the middle between the black border's and the white base's levels is unknown, not a vote.
+   Where the white base is itself at the clip (an over-exposed frame, ``CLIPPED_BASE``), every white cell clips
+   with no highlight on it: a saturated cell is then unknown only beside a sign of one (a cell of the tag between
+   the two levels, or a border cell reading white).
    Accepted only when at least ``min_cells`` cells are read, at least ``min_agreement`` of them agree with the
    expected id's code, the border reads black, and the nearest other id of the dictionary (at the same rotation)
    disagrees with what was read in at least ``min_margin_cells`` more cells than the expected id does.
@@ -77,6 +80,12 @@ MIN_SHARE_IN_FRAME = 0.6
 # A cell whose mean grey level is at least this is clipped (8 bits): a highlight's plateau at 255. A tag's white
 # cells can lie near 250 in a bright field (the print is whiter than the base), and noise lifts single pixels.
 SATURATED = 253.5
+# A white base this bright (its median, 8 bits) is itself at the clip: the frame is over-exposed, and a tag's white
+# cells (printed whiter than the base) clip with no highlight on them. Then only a clipped cell beside a cell of the
+# tag more than GLARE_LIFT of the border-to-base contrast from both levels (a highlight's halo), or beside a border
+# cell reading white, is taken for a highlight.
+CLIPPED_BASE = 245.0
+GLARE_LIFT = 0.15
 # An edge with fewer than this share of its profiles wholly in the frame runs just inside the frame's edge: its
 # profiles count where the step's boxes lie in the frame (``border_steps``).
 HUGGING_SHARE = 0.3
@@ -461,6 +470,12 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
     # A clipped cell is unknown, and so is a cell beside a clipped one that reads white: a highlight only adds
     # light, so its halo can lift a black cell to white but never darken a white one (a black read there still counts).
     sat = mean >= SATURATED
+    if white >= CLIPPED_BASE:
+        # An over-exposed frame clips the white base and every white cell with it: a clipped cell is then no sign of
+        # a highlight unless one shows beside it: a cell of the tag at neither level (a black one lifted, the halo), or
+        # a border cell reading white (the highlight itself: the border is black).
+        grey = (code | border) & in_frame & (mean > black + GLARE_LIFT * contrast) & (mean < white - GLARE_LIFT * contrast)
+        sat &= cv2.dilate((grey | (border & bit)).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     halo = cv2.dilate(sat.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     unknown |= sat | (halo & bit) | ~in_frame
     read_border = border & ~unknown

@@ -661,3 +661,30 @@ def test_a_registration_that_gained_markers_looks_once_more_for_the_tags_still_m
     err = np.linalg.norm(video.by_id()[glared_id].corners_px - truth[glared_id], axis=1)
     print(f"glared tag found on the second look: corners {np.round(err, 2)} px from the truth")
     assert err.max() < CORNER_TOLERANCE_PX
+
+
+@pytest.mark.parametrize("spot", [(0.45, 0.45), (0.3, 0.6), (0.15, 0.5), (0.7, 0.3)])
+@pytest.mark.parametrize("sigma_px", [12.0, 20.0])
+def test_a_highlight_on_an_over_exposed_tag_leaves_its_cells_unread_not_misread(spot, sigma_px):
+    """In an over-exposed frame the white cells clip with no highlight on them and are read as white; a highlight's
+    clipped cells are still unknown where its halo (black cells lifted towards white) or a border cell reading white
+    shows beside them: no cell is misread, and the spot's cells are not read."""
+    from tag_frames import synthetic_tag_frame
+
+    from drillnav.registration.tag_recovery import read_code
+
+    corners = np.array([[250.0, 150.0], [400.0, 165.0], [390.0, 315.0], [240.0, 300.0]])
+    frame = synthetic_tag_frame(corners, aruco_id=7, gain=1.12, blur_px=2.0).astype(np.float64)
+    code = dictionary_codes("DICT_6X6_250")[7].reshape(-1)
+    plain = read_code(frame.astype(np.float32), corners, code_size=6)
+    assert plain.known.all() and (plain.bits == code).all()  # clipped white cells are read, and read right
+    centre = cv2.perspectiveTransform(np.float32([[spot]]), cv2.getPerspectiveTransform(np.float32([[0, 0], [1, 0], [1, 1], [0, 1]]),
+                                                                                          corners.astype(np.float32))).ravel()
+    yy, xx = np.mgrid[: frame.shape[0], : frame.shape[1]]
+    glared = np.clip(frame + 500.0 * np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma_px**2)), 0, 255)
+    read = read_code(glared.astype(np.uint8).astype(np.float32), corners, code_size=6)
+    assert not read.reason
+    assert (read.bits[read.known] == code[read.known]).all()
+    # The cell under the spot's centre is not read (the cells are 1/8 of the tag's side, the code from 1/8 to 7/8).
+    row, col = int(spot[1] * 8) - 1, int(spot[0] * 8) - 1
+    assert not read.known[6 * row + col] and read.known.sum() < 30

@@ -25,9 +25,9 @@ from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, register_with_recovery, track_frame
 from drillnav.registration.tag_hypotheses import outline_hypotheses
-from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes
+from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, read_code
 from drillnav.registration.tag_search import QUADS_PER_HULL, _quads_of_hull, _same_as_any, identify_quad, search_tags
-from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator
+from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator, detect_tags
 from tag_frames import synthetic_tag_frame  # noqa: E402  (tests/: a rendered tag, a glove over it)
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
@@ -312,3 +312,25 @@ def test_a_tag_read_in_part_that_an_id_outside_the_marker_set_nearly_fits_is_nam
     more = VideoMarkerLocator(camera=camera, marker_ids=set_ids).search(gray, none, set_ids)
     assert [m.marker_id for m in more.markers] == [mine] and more.markers[0].recovered
     assert VideoMarkerLocator(camera=camera, marker_ids=set_ids + [near // 4]).search(gray, none, set_ids) is none
+
+
+def test_a_gloved_tag_in_an_over_exposed_frame_is_found_on_its_clipped_white_cells():
+    """An over-exposed frame clips the white base and every white code cell at 255. Read as glare (a clipped cell
+    unknown, and any white cell beside one), such a tag kept 21 of its 36 cells, its border's; a glove over a corner
+    then cost ArUco the tag and the search its name. Seen on the operating-room twin (seed 10802, random views, first
+    frame): marker 43, gloved in a clipped frame, was not found, the frame shared one marker with fluoroscopy, and the
+    registration was refused. With the base clipped, a clipped cell is taken for white unless a highlight shows beside
+    it."""
+    corners = np.array([[250.0, 150.0], [400.0, 165.0], [390.0, 315.0], [240.0, 300.0]])
+    glove = [[-0.3, 0.4], [0.6, 1.3], [-0.3, 1.3]]
+    gray = synthetic_tag_frame(corners, aruco_id=7, glove_tag_xy=glove, gain=1.12, blur_px=2.0)
+    base = cv2.perspectiveTransform(np.float32([[[-0.1, 0.5]], [[1.1, 0.5]], [[0.5, -0.1]]]),
+                                    cv2.getPerspectiveTransform(np.float32([[0, 0], [1, 0], [1, 1], [0, 1]]), corners.astype(np.float32))).reshape(-1, 2)
+    assert all(gray[int(round(y)), int(round(x))] == 255 for x, y in base), "the base no longer clips"
+    assert 7 not in [i for i, _ in detect_tags(gray)], "the glove no longer hides the tag from ArUco"
+    read = read_code(gray.astype(np.float32), corners, code_size=6, partial=True)
+    code = dictionary_codes("DICT_6X6_250")[7].reshape(-1)
+    assert read.known.sum() >= 30 and (read.bits[read.known] == code[read.known]).all()
+    found = search_tags(gray, dictionary="DICT_6X6_250", wanted=[7])
+    assert [t.aruco_id for t in found] == [7]
+    assert np.linalg.norm(found[0].corners_px - corners, axis=1).max() <= 0.5
