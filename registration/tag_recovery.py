@@ -6,8 +6,9 @@ saturated highlight on a glossy tag, loses the tag although most of it is in pla
 for there:
 
 1. Each of its four border edges is searched across its predicted line (within ``tolerance_px``): the offset where
-   the profiles step from the bright base outside to the black border inside, taken over the edge's samples by a
-   high percentile so that an occluded part does not decide it. Then each sample's step is placed to sub-pixel
+   the profiles step from the bright base outside to the black border inside (the contrast between narrow boxes of
+   samples either side, or wide ones where a blurred step spreads beyond the narrow), taken over the edge's samples
+   by a high percentile so that an occluded part does not decide it. Then each sample's step is placed to sub-pixel
    (:mod:`.tag_edges`, as the locator refines detected tags) and kept only when it looks like a clean border step
    (its contrast near the edge's, its dark side unclipped, its bright side clipped only beyond the upper half of
    the step's gradient); a line is fitted to the kept samples, trimming the
@@ -89,6 +90,9 @@ GLARE_LIFT = 0.15
 # An edge with fewer than this share of its profiles wholly in the frame runs just inside the frame's edge: its
 # profiles count where the step's boxes lie in the frame (``border_steps``).
 HUGGING_SHARE = 0.3
+# Box widths (samples at ``step_px``, 0.5 px) either side of a candidate border step in the coarse search: 2 px, and
+# 4 px for a step that defocus or motion spreads wider than the narrow boxes reach (``border_steps``).
+NARROW_GAP, WIDE_GAP = 4, 8
 
 
 @lru_cache(maxsize=8)
@@ -280,18 +284,11 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     return TagRecovery(corners_px=corners, reason="", edge_fraction=frac_t)
 
 
-def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolerance_px: float, samples: int, step_px: float, min_contrast: float,
-                 partial: bool, allow_one_missing: bool = False) -> BorderSteps | str:
-    """The clean border steps along each edge of a tag predicted at ``pred`` (4, 2), or the reason none can be had.
-
-    ``allow_one_missing``: one edge with no border step within the tolerance is returned with no step kept
-    (otherwise the tag is refused with that edge's reason).
-    """
-    side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
-    if side.min() < 12.0:
-        return f"predicted tag too small ({side.min():.1f} px side)"
-    # 1. Coarse: per edge, the offset (within the tolerance) where the samples step from bright outside to dark inside.
-    gap = 4  # samples (2 px at 0.5 px) each side of a candidate step
+def _coarse_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, gaps: tuple[int, ...], tolerance_px: float, samples: int,
+                  step_px: float, partial: bool):
+    """Step 1 of :func:`border_steps` with boxes of ``gaps`` samples: (profiles, their offsets (o,), the candidate steps'
+    offsets (o',), each edge's score at each (4, o'), -inf beyond the tolerance), or the reason there is none."""
+    gap = max(gaps)
     reach = tolerance_px + gap * step_px + 1.0
     offsets = np.arange(-reach, reach + step_px / 2, step_px)
     along = np.linspace(0.06, 0.94, samples)
@@ -300,10 +297,14 @@ def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolera
         return "the predicted tag's edges leave the frame"
     seen = prof.sample_inside[0]                                                      # (4, s)
     vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
-    box = _box_mean(vals, gap)                                                        # mean of gap samples starting at each offset
-    # Candidate step between offsets[j + gap - 1] and offsets[j + gap]: outside mean minus inside mean.
-    contrast = box[..., gap:] - box[..., : box.shape[-1] - gap]                       # (4, s, o - 2 gap + 1)
-    cand = offsets[gap - 1 : gap - 1 + contrast.shape[-1]] + step_px / 2
+    # Candidate step b between offsets[b] and offsets[b + 1], b = gap - 1 .. o - 1 - gap: the mean of g samples
+    # outside minus the mean of g inside, the largest over the box widths g.
+    n_cand = len(offsets) - 2 * gap + 1
+    contrast = np.full(vals.shape[:-1] + (n_cand,), -np.inf)                          # (4, s, o')
+    for g in gaps:
+        box = _box_mean(vals, g)                                                      # box[j]: mean of vals[j : j + g]
+        contrast = np.maximum(contrast, box[..., gap : gap + n_cand] - box[..., gap - g : gap - g + n_cand])
+    cand = offsets[gap - 1 : gap - 1 + n_cand] + step_px / 2
     in_tol = np.abs(cand) <= tolerance_px
     # A high percentile over the edge's samples: a step must run along most of what is visible of the edge. A
     # sample clipped along most of its profile (a highlight over the border) shows nothing, and is not counted.
@@ -317,12 +318,36 @@ def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolera
     blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
     edge_score = _percentile_over_samples(contrast, usable & ~blind[..., None], 60.0)  # (4, o'), -inf where none is seen
     edge_score[:, ~in_tol] = -np.inf
+    return prof, offsets, cand, edge_score
+
+
+def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolerance_px: float, samples: int, step_px: float, min_contrast: float,
+                 partial: bool, allow_one_missing: bool = False) -> BorderSteps | str:
+    """The clean border steps along each edge of a tag predicted at ``pred`` (4, 2), or the reason none can be had.
+
+    ``allow_one_missing``: one edge with no border step within the tolerance is returned with no step kept
+    (otherwise the tag is refused with that edge's reason).
+    """
+    side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
+    if side.min() < 12.0:
+        return f"predicted tag too small ({side.min():.1f} px side)"
+    # 1. Coarse: per edge, the offset (within the tolerance) where the samples step from bright outside to dark inside,
+    # its contrast the larger of two measures: between narrow boxes of samples either side, and between wide ones (a
+    # step that defocus or motion spreads beyond the narrow boxes).
+    coarse_pass = _coarse_steps(gray, pred, gaps=(NARROW_GAP, WIDE_GAP), tolerance_px=tolerance_px, samples=samples, step_px=step_px, partial=partial)
+    if isinstance(coarse_pass, str):
+        return coarse_pass
+    prof, offsets, cand, edge_score = coarse_pass
     best = np.argmax(edge_score, axis=1)
     edge_contrast = edge_score[np.arange(4), best]
     found = edge_contrast >= min_contrast
     if found.sum() < (3 if allow_one_missing else 4):
         k = int(np.argmin(edge_contrast))
         return f"no border step within {tolerance_px:.0f} px of edge {k} (contrast {edge_contrast[k]:.0f})"
+    along = np.linspace(0.06, 0.94, samples)                                          # as _coarse_steps samples each edge
+    seen = prof.sample_inside[0]                                                      # (4, s)
+    vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
+    hugging = seen.mean(axis=1) < HUGGING_SHARE                                       # (4,)
     coarse = cand[best]                                                               # (4,)
     # 2. Fine: every sample's step near its edge's coarse offset, kept when it is a clean border step.
     # The window holds the whole step: +-3 px for a sharp edge, wider under motion blur (the gradient's upper half
