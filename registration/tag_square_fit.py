@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
 
@@ -43,25 +44,37 @@ class SquareFit:
 
 
 def _pose(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    rot, _ = cv2.Rodrigues(x[:3])
-    return rot, x[3:]
+    """Pose parameters (..., 6) (rotation vector, translation mm) -> rotation (..., 3, 3), translation (..., 3)."""
+    x = np.asarray(x, dtype=np.float64)
+    rot = Rotation.from_rotvec(x[..., :3].reshape(-1, 3)).as_matrix().reshape(x.shape[:-1] + (3, 3))
+    return rot, x[..., 3:]
 
 
 def _pinhole(camera: PinholeCamera, x: NDArray[np.float64], object_points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The square's corners (4, 2) in undistorted pixels for pose parameters x (rotation vector, translation mm)."""
+    """The square's corners (..., 4, 2) in undistorted pixels for pose parameters x (..., 6) (rotation vector,
+    translation mm): one pose or a batch."""
     rot, t = _pose(x)
-    p = object_points @ rot.T + t
+    p = np.einsum("ij,...kj->...ik", object_points, rot) + t[..., None, :]               # (..., 4, 3)
     k = camera.camera_matrix
-    xy = p[:, :2] / p[:, 2:3]
-    return np.stack([k[0, 0] * xy[:, 0] + k[0, 1] * xy[:, 1] + k[0, 2], k[1, 1] * xy[:, 1] + k[1, 2]], axis=1)
+    xy = p[..., :2] / p[..., 2:3]
+    return np.stack([k[0, 0] * xy[..., 0] + k[0, 1] * xy[..., 1] + k[0, 2], k[1, 1] * xy[..., 1] + k[1, 2]], axis=-1)
 
 
 def _distances(corners: NDArray[np.float64], points: NDArray[np.float64], edge: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Signed distance (n,) px of each point (n, 2) from the line of its edge (edge k: corner k -> k + 1)."""
-    a, b = corners[edge], corners[(edge + 1) % 4]
+    """Signed distance (..., n) px of each point (n, 2) from the line of its edge (edge k: corner k -> k + 1), for
+    corners (..., 4, 2)."""
+    a, b = corners[..., edge, :], corners[..., (edge + 1) % 4, :]                        # (..., n, 2)
     d = b - a
-    length = np.linalg.norm(d, axis=1)
-    return ((points[:, 0] - a[:, 0]) * d[:, 1] - (points[:, 1] - a[:, 1]) * d[:, 0]) / np.maximum(length, 1e-9)
+    length = np.linalg.norm(d, axis=-1)
+    return ((points[:, 0] - a[..., 0]) * d[..., 1] - (points[:, 1] - a[..., 1]) * d[..., 0]) / np.maximum(length, 1e-9)
+
+
+def _forward_jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Forward-difference Jacobian (m, 6) of a batched ``fun`` ((b, 6) -> (b, m)) at x (6,), every step in one call
+    (steps as scipy's 2-point rule takes them: sqrt(eps) relative, at least sqrt(eps))."""
+    h = np.sqrt(np.finfo(np.float64).eps) * np.maximum(1.0, np.abs(x))
+    values = fun(np.vstack([x, x + np.diag(h)]))                                          # (7, m)
+    return ((values[1:] - values[0]) / h[:, None]).T
 
 
 def fit_square_to_edges(
@@ -100,7 +113,11 @@ def fit_square_to_edges(
     if not ok:
         return None
     x0 = np.concatenate([rvec.ravel(), tvec.ravel()])
-    fit = least_squares(lambda x: _distances(_pinhole(camera, x, obj), undist, edge), x0, method="lm", x_scale="jac")
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:  # one pose (6,) -> (n,), or a batch (b, 6) -> (b, n)
+        return _distances(_pinhole(camera, x, obj), undist, edge)
+
+    # The Jacobian's six steps in one batched call: the fit runs in the displaced-corner repair up to 16 times a tag.
+    fit = least_squares(residuals, x0, jac=lambda x: _forward_jacobian(residuals, x), method="lm", x_scale="jac")
     if not fit.success:
         return None
     rot, t = _pose(fit.x)
@@ -115,11 +132,9 @@ def fit_square_to_edges(
     except np.linalg.LinAlgError:
         return None
     # The corners' Jacobian (8, 6) by central differences of the pinhole projection (distortion changes it little).
-    jc = np.empty((8, 6))
-    for j in range(6):
-        h = np.zeros(6)
-        h[j] = 1e-6 * max(1.0, abs(fit.x[j]))
-        jc[:, j] = (_pinhole(camera, fit.x + h, obj) - _pinhole(camera, fit.x - h, obj)).ravel() / (2 * h[j])
+    h = 1e-6 * np.maximum(1.0, np.abs(fit.x))
+    steps = np.diag(h)
+    jc = ((_pinhole(camera, fit.x + steps, obj) - _pinhole(camera, fit.x - steps, obj)).reshape(6, 8) / (2 * h[:, None])).T
     cov_c = jc @ cov @ jc.T
     corner_sigma = np.sqrt(np.array([(cov_c[2 * i, 2 * i] + cov_c[2 * i + 1, 2 * i + 1]) / 2.0 for i in range(4)]))
     if not np.all(np.isfinite(corner_sigma)) or corner_sigma.max() > max_corner_sigma_px:
