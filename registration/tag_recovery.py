@@ -284,11 +284,20 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     return TagRecovery(corners_px=corners, reason="", edge_fraction=frac_t)
 
 
-def _coarse_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, gaps: tuple[int, ...], tolerance_px: float, samples: int,
-                  step_px: float, partial: bool):
-    """Step 1 of :func:`border_steps` with boxes of ``gaps`` samples: (profiles, their offsets (o,), the candidate steps'
-    offsets (o',), each edge's score at each (4, o'), -inf beyond the tolerance), or the reason there is none."""
-    gap = max(gaps)
+def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolerance_px: float, samples: int, step_px: float, min_contrast: float,
+                 partial: bool, allow_one_missing: bool = False) -> BorderSteps | str:
+    """The clean border steps along each edge of a tag predicted at ``pred`` (4, 2), or the reason none can be had.
+
+    ``allow_one_missing``: one edge with no border step within the tolerance is returned with no step kept
+    (otherwise the tag is refused with that edge's reason).
+    """
+    side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
+    if side.min() < 12.0:
+        return f"predicted tag too small ({side.min():.1f} px side)"
+    # 1. Coarse: per edge, the offset (within the tolerance) where the samples step from bright outside to dark inside,
+    # its contrast the larger of two measures: between narrow boxes of samples either side, and between wide ones (a
+    # step that defocus or motion spreads beyond the narrow boxes).
+    gap = WIDE_GAP  # samples either side of a candidate step, the wide boxes'
     reach = tolerance_px + gap * step_px + 1.0
     offsets = np.arange(-reach, reach + step_px / 2, step_px)
     along = np.linspace(0.06, 0.94, samples)
@@ -298,10 +307,10 @@ def _coarse_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, gaps:
     seen = prof.sample_inside[0]                                                      # (4, s)
     vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
     # Candidate step b between offsets[b] and offsets[b + 1], b = gap - 1 .. o - 1 - gap: the mean of g samples
-    # outside minus the mean of g inside, the largest over the box widths g.
+    # outside minus the mean of g inside, the larger of the narrow and the wide boxes'.
     n_cand = len(offsets) - 2 * gap + 1
     contrast = np.full(vals.shape[:-1] + (n_cand,), -np.inf)                          # (4, s, o')
-    for g in gaps:
+    for g in (NARROW_GAP, WIDE_GAP):
         box = _box_mean(vals, g)                                                      # box[j]: mean of vals[j : j + g]
         contrast = np.maximum(contrast, box[..., gap : gap + n_cand] - box[..., gap - g : gap - g + n_cand])
     cand = offsets[gap - 1 : gap - 1 + n_cand] + step_px / 2
@@ -318,36 +327,12 @@ def _coarse_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, gaps:
     blind = (vals >= SATURATED).mean(axis=-1) > 0.5                                   # (4, s)
     edge_score = _percentile_over_samples(contrast, usable & ~blind[..., None], 60.0)  # (4, o'), -inf where none is seen
     edge_score[:, ~in_tol] = -np.inf
-    return prof, offsets, cand, edge_score
-
-
-def border_steps(gray: NDArray[np.float32], pred: NDArray[np.float64], *, tolerance_px: float, samples: int, step_px: float, min_contrast: float,
-                 partial: bool, allow_one_missing: bool = False) -> BorderSteps | str:
-    """The clean border steps along each edge of a tag predicted at ``pred`` (4, 2), or the reason none can be had.
-
-    ``allow_one_missing``: one edge with no border step within the tolerance is returned with no step kept
-    (otherwise the tag is refused with that edge's reason).
-    """
-    side = np.linalg.norm(np.roll(pred, -1, axis=0) - pred, axis=1)
-    if side.min() < 12.0:
-        return f"predicted tag too small ({side.min():.1f} px side)"
-    # 1. Coarse: per edge, the offset (within the tolerance) where the samples step from bright outside to dark inside,
-    # its contrast the larger of two measures: between narrow boxes of samples either side, and between wide ones (a
-    # step that defocus or motion spreads beyond the narrow boxes).
-    coarse_pass = _coarse_steps(gray, pred, gaps=(NARROW_GAP, WIDE_GAP), tolerance_px=tolerance_px, samples=samples, step_px=step_px, partial=partial)
-    if isinstance(coarse_pass, str):
-        return coarse_pass
-    prof, offsets, cand, edge_score = coarse_pass
     best = np.argmax(edge_score, axis=1)
     edge_contrast = edge_score[np.arange(4), best]
     found = edge_contrast >= min_contrast
     if found.sum() < (3 if allow_one_missing else 4):
         k = int(np.argmin(edge_contrast))
         return f"no border step within {tolerance_px:.0f} px of edge {k} (contrast {edge_contrast[k]:.0f})"
-    along = np.linspace(0.06, 0.94, samples)                                          # as _coarse_steps samples each edge
-    seen = prof.sample_inside[0]                                                      # (4, s)
-    vals = prof.values[0].astype(np.float64)                                          # (4, s, o)
-    hugging = seen.mean(axis=1) < HUGGING_SHARE                                       # (4,)
     coarse = cand[best]                                                               # (4,)
     # 2. Fine: every sample's step near its edge's coarse offset, kept when it is a clean border step.
     # The window holds the whole step: +-3 px for a sharp edge, wider under motion blur (the gradient's upper half
