@@ -25,3 +25,11 @@ def synthetic_tag_frame(corners_px, *, aruco_id, glove_tag_xy=None, size=(480, 6
         cv2.fillPoly(frame, [np.round(glove * 16).astype(np.int32)], 185.0, lineType=cv2.LINE_AA, shift=4)
     frame = gain * cv2.GaussianBlur(frame, (0, 0), blur_px) + rng.normal(0, 2.0, size=(h, w))
     return np.clip(frame, 0, 255).astype(np.uint8)
+
+
+def tag_points_px(corners_px, tag_xy):
+    """Points (n, 2) px of a tag at ``corners_px`` (4, 2) (TL, TR, BR, BL) given in its unit square ``tag_xy`` (n, 2)
+    (x right, y down; 0-1 across the black border, beyond it on the white base)."""
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)
+    to_frame = cv2.getPerspectiveTransform(unit, np.asarray(corners_px, dtype=np.float32))
+    return cv2.perspectiveTransform(np.asarray(tag_xy, dtype=np.float32).reshape(-1, 1, 2), to_frame).reshape(-1, 2).astype(np.float64)

@@ -27,11 +27,12 @@ from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, predict_missing_tags, recover_missing_tags, register_with_recovery, track_frame
-from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, predict_tag_corners, recover_tag
+from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, predict_tag_corners, read_code, recover_tag
 from drillnav.registration.video_fluoro import register_video_to_fluoro
 from drillnav.registration.transforms import apply, make_transform
 from drillnav.registration.camera import PinholeCamera
 from drillnav.registration.video_markers import RECOVERED_MAX_SQUARE_RMS_PX, VideoDetections, VideoMarkerLocator, placed_elsewhere, tag_object_points
+from tag_frames import synthetic_tag_frame, tag_points_px  # noqa: E402  (tests/: a rendered tag, a glove over it)
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
@@ -671,17 +672,12 @@ def test_a_highlight_on_an_over_exposed_tag_leaves_its_cells_unread_not_misread(
     """In an over-exposed frame the white cells clip with no highlight on them and are read as white; a highlight's
     clipped cells are still unknown where its halo (black cells lifted towards white) or a border cell reading white
     shows beside them: no cell is misread, and the spot's cells are not read."""
-    from tag_frames import synthetic_tag_frame
-
-    from drillnav.registration.tag_recovery import read_code
-
     corners = np.array([[250.0, 150.0], [400.0, 165.0], [390.0, 315.0], [240.0, 300.0]])
     frame = synthetic_tag_frame(corners, aruco_id=7, gain=1.12, blur_px=2.0).astype(np.float64)
     code = dictionary_codes("DICT_6X6_250")[7].reshape(-1)
     plain = read_code(frame.astype(np.float32), corners, code_size=6)
     assert plain.known.all() and (plain.bits == code).all()  # clipped white cells are read, and read right
-    centre = cv2.perspectiveTransform(np.float32([[spot]]), cv2.getPerspectiveTransform(np.float32([[0, 0], [1, 0], [1, 1], [0, 1]]),
-                                                                                          corners.astype(np.float32))).ravel()
+    centre = tag_points_px(corners, [spot])[0]
     yy, xx = np.mgrid[: frame.shape[0], : frame.shape[1]]
     glared = np.clip(frame + 500.0 * np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma_px**2)), 0, 255)
     read = read_code(glared.astype(np.uint8).astype(np.float32), corners, code_size=6)
@@ -699,8 +695,6 @@ def test_a_dim_defocused_tag_is_recovered_from_its_wide_border_step(blur_px):
     edge ("no border step"). Seen on the operating-room twin (seed 3007, every camera degradation, first frame):
     markers 20 and 42, 31 and 33 of their cells readable, not recovered from their true pose's prediction. The coarse
     search also weighs 4 px boxes; the tag is recovered from a prediction 2 px off, within 0.5 px."""
-    from tag_frames import synthetic_tag_frame
-
     corners = np.array([[250.0, 150.0], [370.0, 160.0], [362.0, 280.0], [242.0, 270.0]])
     frame = synthetic_tag_frame(corners, aruco_id=7, gain=0.5, blur_px=blur_px).astype(np.float32)
     predicted = corners + np.random.default_rng(1).normal(scale=2.0, size=(4, 2))

@@ -28,7 +28,7 @@ from drillnav.registration.tag_hypotheses import outline_hypotheses
 from drillnav.registration.tag_recovery import RECOVERED_CORNER_SIGMA_PX, dictionary_codes, read_code
 from drillnav.registration.tag_search import QUADS_PER_HULL, _quads_of_hull, _same_as_any, identify_quad, search_tags
 from drillnav.registration.video_markers import VideoDetections, VideoMarkerLocator, detect_tags
-from tag_frames import synthetic_tag_frame  # noqa: E402  (tests/: a rendered tag, a glove over it)
+from tag_frames import synthetic_tag_frame, tag_points_px  # noqa: E402  (tests/: a rendered tag, a glove over it)
 from twin_images import GLOVED_MARKER, GLOVED_SEED, gloved_frame  # noqa: E402  (tests/: shared twin images)
 
 SEED, GLOVED = GLOVED_SEED, GLOVED_MARKER
@@ -324,8 +324,7 @@ def test_a_gloved_tag_in_an_over_exposed_frame_is_found_on_its_clipped_white_cel
     corners = np.array([[250.0, 150.0], [400.0, 165.0], [390.0, 315.0], [240.0, 300.0]])
     glove = [[-0.3, 0.4], [0.6, 1.3], [-0.3, 1.3]]
     gray = synthetic_tag_frame(corners, aruco_id=7, glove_tag_xy=glove, gain=1.12, blur_px=2.0)
-    base = cv2.perspectiveTransform(np.float32([[[-0.1, 0.5]], [[1.1, 0.5]], [[0.5, -0.1]]]),
-                                    cv2.getPerspectiveTransform(np.float32([[0, 0], [1, 0], [1, 1], [0, 1]]), corners.astype(np.float32))).reshape(-1, 2)
+    base = tag_points_px(corners, [[-0.1, 0.5], [1.1, 0.5], [0.5, -0.1]])
     assert all(gray[int(round(y)), int(round(x))] == 255 for x, y in base), "the base no longer clips"
     assert 7 not in [i for i, _ in detect_tags(gray)], "the glove no longer hides the tag from ArUco"
     read = read_code(gray.astype(np.float32), corners, code_size=6, partial=True)
