@@ -21,14 +21,14 @@ from .camera import PinholeCamera
 from .markers import MarkerSet
 from .tag_border import border_shift_px, code_cells, moved_outline
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
-from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, fit_tag_edges, recover_tag
+from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, dictionary_codes, fit_tag_edges, read_code, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
 from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, outline_hypotheses
 from .tag_search import search_tags
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points", "placed_elsewhere", "PLACED_MARGIN_PX",
-           "RECOVERED_MAX_SQUARE_RMS_PX", "DISPLACED_CORNER_CHECK_PX", "SQUARE_MISFIT_MIN_PX", "with_markers"]
+           "RECOVERED_MAX_SQUARE_RMS_PX", "DISPLACED_CORNER_CHECK_PX", "SQUARE_MISFIT_MIN_PX", "MISREAD_MIN_CELLS", "MISREAD_SHARE", "with_markers"]
 
 # Two tags of the marker set cannot be confused by a recovery when the registration places them at least this much
 # farther apart than its two predictions can both be off (:func:`placed_elsewhere`): about a quarter of a small
@@ -55,6 +55,14 @@ REPAIR_TOLERANCE_PX = 8.0
 # a misfit above it as extra corner noise (:func:`.joint_solve.square_misfit_noise_px`), and the repair of a displaced
 # corner stops at a placement this good.
 SQUARE_MISFIT_MIN_PX = 0.2
+# A tag ArUco decoded is misread when its code cells, read again through its refined corners
+# (:func:`.tag_recovery.read_code`, which leaves a cell under a highlight, a glove's edge or blur between the levels
+# unread), disagree with its id in at least MISREAD_MIN_CELLS cells and in over MISREAD_SHARE of the cells read.
+# Under every camera degradation (twin seeds 3000-3011, and 5000-5011 with the surgeon's markers; 3 poses) the 207
+# tags ArUco decoded rightly read 10-36 cells, none disagreeing; the one it misread (seed 3010, second pose: marker
+# 25's tag, foreshortened and blurred, decoded as 43 while 43's own was decoded too) read 10, 2 disagreeing.
+MISREAD_MIN_CELLS = 2
+MISREAD_SHARE = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,6 +101,10 @@ class VideoDetections:
     # Markers of the set whose tag ArUco decoded but whose corners are no view of its square and could not be placed
     # from three of them (:meth:`VideoMarkerLocator.locate`): not in ``markers``, left for the recovery to find.
     unplaced_ids: tuple[int, ...] = ()
+    # Ids of the marker set that ArUco decoded on a tag whose own code cells contradict them (``MISREAD_MIN_CELLS``;
+    # the marker may still be in ``markers``, found at its own tag), or at two places in one frame (then not in
+    # ``markers``: neither place is taken).
+    misread_ids: tuple[int, ...] = ()
 
     def by_id(self) -> dict[int, VideoMarker]:
         return {m.marker_id: m for m in self.markers}
@@ -308,6 +320,7 @@ class VideoMarkerLocator:
         found: list[VideoMarker] = []
         ignored: list[int] = []
         unplaced: list[int] = []
+        misread: list[int] = []
         gray_f: NDArray[np.float32] | None = None
         for name, (fine, coarse) in self._detectors.items():
             if small is not None:
@@ -348,9 +361,27 @@ class VideoMarkerLocator:
                     elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
                         unplaced.append(spec.marker_id)
                         continue
+                if self._misread(gray_f, marker.corners_px, aruco_id=aruco_id, dictionary=name):
+                    misread.append(spec.marker_id)
+                    continue
                 found.append(self._border_shifted(marker, spec=spec, gray=gray_f))
-        return VideoDetections(markers=tuple(sorted(found, key=lambda m: m.marker_id)), ignored_ids=tuple(sorted(ignored)), image_size=(w, h),
-                               unplaced_ids=tuple(sorted(unplaced)))
+        # One tag per marker: an id decoded at two places in one frame names neither (a misread the code cells did not
+        # catch, or a tag printed twice).
+        twice = {m.marker_id for m in found if sum(o.marker_id == m.marker_id for o in found) > 1}
+        return VideoDetections(markers=tuple(sorted((m for m in found if m.marker_id not in twice), key=lambda m: m.marker_id)),
+                               ignored_ids=tuple(sorted(ignored)), image_size=(w, h), unplaced_ids=tuple(sorted(unplaced)),
+                               misread_ids=tuple(sorted(set(misread) | twice)))
+
+    @staticmethod
+    def _misread(gray: NDArray[np.float32], corners_px: NDArray[np.float64], *, aruco_id: int, dictionary: str) -> bool:
+        """The code cells of the tag with corners (4, 2) px (OpenCV order, as decoded), read again, contradict ``aruco_id``
+        (``MISREAD_MIN_CELLS``). A tag whose cells cannot be read at all is not contradicted."""
+        codes = dictionary_codes(dictionary)
+        got = read_code(gray, corners_px, code_size=codes.shape[1], partial=True)
+        if got.reason:
+            return False
+        wrong = int(((codes[aruco_id].reshape(-1) != got.bits) & got.known).sum())
+        return wrong >= MISREAD_MIN_CELLS and wrong > MISREAD_SHARE * int(got.known.sum())
 
     def _one_corner_displaced(self, quad: NDArray[np.float64], *, spec: _TagSpec, as_read: VideoMarker,
                               place: Callable[[NDArray[np.float64]], NDArray[np.float64] | None], corner_sigma_px: float | None = None

@@ -455,6 +455,7 @@ class RegistrationNode:
         # After the axis (never in its latency): the tags this frame showed, for the display's camera preview and tools.
         self._pub_video.put(msg.VideoMarkers(
             stamp_ns=stamp, image_size=fa.video.image_size, ignored_ids=fa.video.ignored_ids, unplaced_ids=fa.video.unplaced_ids,
+            misread_ids=fa.video.misread_ids,
             markers=tuple(msg.VideoTag(id=int(m.marker_id), corners_px=tuple(map(tuple, m.corners_px.tolist()))) for m in fa.video.markers),
         ).to_bytes())
 

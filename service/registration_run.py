@@ -103,7 +103,7 @@ def run_registration(args: argparse.Namespace) -> dict:
                     # a loose match (one marker alone, RejectedRing.loose) is listed only where the camera bore it out
                     for p in poses if not p.loose or p.marker_id in reg.used_ids],
         "predicted_error": {"position_mm": pe.position_mm, "angle_deg": pe.angle_deg, "cone_half_angle_deg": pe.cone_half_angle_deg, "at": "axis point nearest the markers' centroid"},
-        "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "unplaced_ids": list(video.unplaced_ids), "corner_rms_px": reg.corner_rms_px},
+        "video": {"markers": [m.marker_id for m in video.markers], "ignored_ids": list(video.ignored_ids), "unplaced_ids": list(video.unplaced_ids), "misread_ids": list(video.misread_ids), "corner_rms_px": reg.corner_rms_px},
         "timings_s": timings,
     }
     if args.ct:
