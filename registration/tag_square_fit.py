@@ -35,13 +35,16 @@ from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
 
-__all__ = ["SquareFit", "fit_square_to_edges", "RETRY_EXCESS"]
+__all__ = ["SquareFit", "fit_square_to_edges", "RETRY_EXCESS", "RETRY_MOVE_PX"]
 
 # The squared distances of the steps from the square fit's edges, less those from free lines through each edge's
 # steps, in units of the steps' scatter about the free lines: at the right pose about chi-square with (2 x edges - 6)
 # degrees of freedom (drawn steps, 0.15 px noise: 1.3-1.6 median, 11 at most over 200 fits). Over this the fit is
 # tried again from the free lines' corners, and the better of the two kept.
 RETRY_EXCESS = 16.0
+# ... and when the fit puts a corner where two free lines cross more than this (px) from their crossing: a fit at the
+# crossings already started where the retry would (under motion blur the steps follow no square closely).
+RETRY_MOVE_PX = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,10 +112,12 @@ def _line_rss(points: NDArray[np.float64], edge: NDArray[np.int64]) -> tuple[flo
     return sq, lines
 
 
-def _corners_on_lines(predicted: NDArray[np.float64], lines: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]]) -> NDArray[np.float64]:
+def _corners_on_lines(predicted: NDArray[np.float64], lines: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """The predicted corners (4, 2) moved onto the free lines: a corner between two lines at their crossing, a corner
-    on one line the nearest point of it."""
+    on one line the nearest point of it; and which corners (4,) are crossings."""
     out = predicted.copy()
+    crossed = np.zeros(4, dtype=bool)
     for c in range(4):
         near = [k for k in ((c - 1) % 4, c) if k in lines]  # corner c ends edge c - 1 and starts edge c
         if len(near) == 2:
@@ -120,11 +125,12 @@ def _corners_on_lines(predicted: NDArray[np.float64], lines: dict[int, tuple[NDA
             a = np.array([d1, -d2]).T
             if abs(np.linalg.det(a)) > 1e-6:
                 out[c] = p1 + np.linalg.solve(a, p2 - p1)[0] * d1
+                crossed[c] = True
                 continue
         if near:
             p, d = lines[near[0]]
             out[c] = p + float((predicted[c] - p) @ d) * d
-    return out
+    return out, crossed
 
 
 def fit_square_to_edges(
@@ -180,9 +186,10 @@ def fit_square_to_edges(
 
     fit = fitted(rvec, tvec)
     first = excess(fit)
-    if first > RETRY_EXCESS:
-        # Perhaps settled on another pose than the steps': again from the corners the free lines give, the better kept.
-        on_lines = _corners_on_lines(camera.undistort_pixels(np.asarray(predicted_px, dtype=np.float64)), lines)  # undistorted pixels
+    on_lines, crossed = _corners_on_lines(camera.undistort_pixels(np.asarray(predicted_px, dtype=np.float64)), lines)  # undistorted pixels
+    if first > RETRY_EXCESS and (fit is None or np.linalg.norm(_pinhole(camera, fit.x, obj)[crossed] - on_lines[crossed], axis=1).max(initial=0.0) > RETRY_MOVE_PX):
+        # Settled on another pose than the steps' (it misses where their lines cross): again from the corners the free
+        # lines give, the better kept.
         ok, rvec, tvec = cv2.solvePnP(obj, on_lines.reshape(4, 1, 2), camera.camera_matrix, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         again = fitted(rvec, tvec) if ok else None
         if excess(again) < first:
