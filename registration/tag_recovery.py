@@ -438,6 +438,27 @@ class CodeRead:
     reason: str = ""
 
 
+@lru_cache(maxsize=4)
+def _cell_grid(n: int) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
+    """For a tag n cells across (black border included), cells -1 .. n (the white base's ring outside the tag, the
+    black border, the code): their indices (n + 2,), 3 x 3 sample points in each cell in grid units (m, 1, 2)
+    float32, and the masks (n + 2, n + 2) of the base beside each edge (not the diagonal corners), the border and the
+    code. Read only (cached)."""
+    idx = np.arange(-1, n + 1)
+    sub = np.array([-0.25, 0.0, 0.25])
+    cu = (idx[None, :, None, None] + 0.5 + sub[None, None, None, :]) * np.ones((len(idx), 1, 3, 1))  # column coordinate
+    cv = (idx[:, None, None, None] + 0.5 + sub[None, None, :, None]) * np.ones((1, len(idx), 1, 3))  # row coordinate
+    pts = np.stack([np.broadcast_to(cu, (len(idx), len(idx), 3, 3)), np.broadcast_to(cv, (len(idx), len(idx), 3, 3))], axis=-1)
+    pts = np.ascontiguousarray(pts.reshape(-1, 1, 2), dtype=np.float32)
+    r, c = np.meshgrid(idx, idx, indexing="ij")
+    ring = ((r == -1) | (r == n)) ^ ((c == -1) | (c == n))
+    border = (((r == 0) | (r == n - 1)) & (c >= 0) & (c < n)) | (((c == 0) | (c == n - 1)) & (r >= 0) & (r < n))
+    code = (r >= 1) & (r <= n - 2) & (c >= 1) & (c <= n - 2)
+    for a in (idx, pts, ring, border, code):
+        a.setflags(write=False)
+    return idx, pts, ring, border, code
+
+
 def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_size: int, min_contrast: float = 30.0,
               partial: bool = False) -> CodeRead:
     """Read the s x s code cells of the tag whose corners (4, 2) px (the first taken as the tag's top-left) are given,
@@ -449,13 +470,8 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
     n = s + 2  # cells across the tag, black border included
     grid = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], dtype=np.float32)
     h = cv2.getPerspectiveTransform(grid, corners.astype(np.float32))
-    # Cells -1 .. n: the white base's ring outside the tag, the black border, the code.
-    idx = np.arange(-1, n + 1)
-    sub = np.array([-0.25, 0.0, 0.25])
-    cu = (idx[None, :, None, None] + 0.5 + sub[None, None, None, :]) * np.ones((len(idx), 1, 3, 1))  # column coordinate
-    cv = (idx[:, None, None, None] + 0.5 + sub[None, None, :, None]) * np.ones((1, len(idx), 1, 3))  # row coordinate
-    pts = np.stack([np.broadcast_to(cu, (len(idx), len(idx), 3, 3)), np.broadcast_to(cv, (len(idx), len(idx), 3, 3))], axis=-1).reshape(-1, 1, 2)
-    img_pts = cv2.perspectiveTransform(pts.astype(np.float32), h).reshape(-1, 2)
+    idx, pts, ring, border, code = _cell_grid(n)
+    img_pts = cv2.perspectiveTransform(pts, h).reshape(-1, 2)
     height, width = gray.shape
     in_frame = ((img_pts >= 0).all(axis=1) & (img_pts[:, 0] <= width - 1) & (img_pts[:, 1] <= height - 1)).reshape(len(idx), len(idx), 9).all(axis=2)
     if not in_frame.all() and not partial:
@@ -463,10 +479,6 @@ def read_code(gray: NDArray[np.float32], corners: NDArray[np.float64], *, code_s
     v = cv2.remap(gray, img_pts[:, 0].reshape(1, -1), img_pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR,
                   borderMode=cv2.BORDER_REPLICATE).reshape(len(idx), len(idx), 9).astype(np.float64)
     mean, vmax, vmin = v.mean(axis=2), v.max(axis=2), v.min(axis=2)
-    r, c = np.meshgrid(idx, idx, indexing="ij")
-    ring = ((r == -1) | (r == n)) ^ ((c == -1) | (c == n))      # the base beside each edge, not the diagonal corners
-    border = (((r == 0) | (r == n - 1)) & (c >= 0) & (c < n)) | (((c == 0) | (c == n - 1)) & (r >= 0) & (r < n))
-    code = (r >= 1) & (r <= s) & (c >= 1) & (c <= s)
     ring, border = ring & in_frame, border & in_frame
     if ring.sum() < 6 or border.sum() < 10:
         return replace(none, reason=f"too little of the tag's surroundings in the frame ({int(ring.sum())} base and {int(border.sum())} border cells)")
