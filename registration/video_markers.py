@@ -98,8 +98,9 @@ class VideoDetections:
     markers: tuple[VideoMarker, ...]
     ignored_ids: tuple[int, ...]
     image_size: tuple[int, int]
-    # Markers of the set whose tag ArUco decoded but whose corners are no view of its square and could not be placed
-    # from three of them (:meth:`VideoMarkerLocator.locate`): not in ``markers``, left for the recovery to find.
+    # Markers of the set whose tag ArUco decoded but whose corners are no view of its square (or a poor one, its edges
+    # not fitted) and could not be placed from three of them (:meth:`VideoMarkerLocator.locate`): not in ``markers``,
+    # left for the recovery to find.
     unplaced_ids: tuple[int, ...] = ()
     # Ids of the marker set that ArUco decoded on a tag whose own code cells contradict them (``MISREAD_MIN_CELLS``;
     # the marker may still be in ``markers``, found at its own tag), or at two places in one frame (then not in
@@ -351,14 +352,16 @@ class VideoMarkerLocator:
                 marker = self._pose(spec, quad if e is None else e)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
-                    # from the other three where its edges and code bear that out and the square fits better; no view
-                    # of its square at all and not so placed, it is left for the recovery to find.
+                    # from the other three where its edges and code bear that out and the square fits better; not so
+                    # placed, it is left for the recovery to find when it is no view of its square at all, or when its
+                    # edges could not be fitted either (nothing bears out any of its corners: a glove's cut at 20 deg
+                    # left ArUco's a view of the square within 0.93 px, one of them 21.6 px off).
                     placed = self._one_corner_displaced(marker.corners_px, spec=spec, as_read=marker, place=lambda pred, aruco_id=aruco_id, spec=spec, name=name: recover_tag(
                         gray_f, pred, aruco_id=aruco_id, dictionary=name, tolerance_px=REPAIR_TOLERANCE_PX, rivals=(), partial=True,
                         square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     if placed is not None:  # within DISPLACED_CORNER_CHECK_PX: better than the corners that sent it here
                         marker = placed
-                    elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX:
+                    elif marker.reprojection_error_px > RECOVERED_MAX_SQUARE_RMS_PX or e is None:
                         unplaced.append(spec.marker_id)
                         continue
                 if self._misread(gray_f, marker.corners_px, aruco_id=aruco_id, dictionary=name):

@@ -79,6 +79,23 @@ def test_a_tag_whose_corners_are_no_view_of_its_square_and_cannot_be_placed_is_r
     assert [m.marker_id for m in recovered.markers] == [23] and recovered.unplaced_ids == ()
 
 
+def test_a_tag_whose_edges_do_not_fit_and_whose_corners_fit_its_square_poorly_is_unplaced_not_kept_as_read():
+    """At 20 deg the same cut leaves ArUco's corners a view of the square within 0.93 px (under the 1 px past which
+    any tag is unplaced) with the cut corner 21.6 px off. Its edges cannot be fitted (the glove runs along one of them)
+    and no three corners place it; it was kept as read, and the joint solve weighed its corners by their misfit alone
+    (1.3 px each). A tag that is no good view of its square and whose edges bear out none of its corners is now
+    unplaced."""
+    truth, frame = _gloved(20.0, 0.14)
+    locator = VideoMarkerLocator(camera=CAMERA, marker_ids=[23])
+    ids, corners = detect_aruco(locator._detectors["DICT_6X6_250"][0], frame)
+    assert ids == [23]
+    assert np.linalg.norm(corners[0].reshape(4, 2) - truth, axis=1).max() > 15.0
+    as_read = locator._pose(locator._specs["DICT_6X6_250"][23], corners[0].reshape(4, 2).astype(np.float64))
+    assert DISPLACED_CORNER_CHECK_PX < as_read.reprojection_error_px <= RECOVERED_MAX_SQUARE_RMS_PX
+    video = locator.locate(frame)
+    assert video.markers == () and video.unplaced_ids == (23,)
+
+
 def test_a_corner_on_a_gloves_edge_is_placed_by_the_tags_edges_alone():
     # The placement an outline named among the posed markers gets (its code read in part, so only its edges are
     # looked for): from ArUco's corners of the gloved tag, one 19 px off.
