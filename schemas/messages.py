@@ -361,8 +361,9 @@ class VideoMarkers(_Message):
     ignored_ids: tuple[int, ...] = Field((), description="ArUco ids seen that are not in the marker set")
     unplaced_ids: tuple[int, ...] = Field((), description="markers whose tag was decoded but whose corners are no view of its square "
                                           "(a glove's edge taken for the tag's) and could not be placed: not in markers, not used")
-    misread_ids: tuple[int, ...] = Field((), description="marker ids decoded on a tag whose own code cells contradict them, or at two places "
-                                         "in the frame: that place not used (an id decoded twice is not in markers)")
+    misread_ids: tuple[int, ...] = Field((), description="marker ids decoded on a tag whose code cells, read again, another id of the "
+                                         "marker set fits better, or decoded at two places in the frame: that place not used (an id "
+                                         "decoded twice is not in markers)")
 
 
 MESSAGE_CLASSES: tuple[type[_Message], ...] = (DrillAxis, Status, Event, FluoroShot, FluoroMarkers, AuditEntry, VideoMarkers)

@@ -3,8 +3,10 @@
 ArUco corrects bit errors: a foreshortened, blurred tag can decode as another id of the dictionary. On the twin
 (seed 3010, every camera degradation, second drill pose) marker 25's tag decoded as 43 while 43's own tag was
 decoded too; the frame then held two markers 43, one 250 px from its tag, and the registration took whichever came
-last. A decoded tag whose code cells, read again through its refined corners, contradict its id is now set aside and
-named on ``misread_ids``; an id decoded at two places names neither.
+last. A decoded tag whose code cells, read again through its refined corners, another id of the marker set fits
+better than its own is now set aside and named on ``misread_ids``; an id decoded at two places names neither. On a
+real photograph's small blurred tags the cells read again disagree with the right id in up to 8 of 23 cells: such
+tags, rightly decoded, must stand.
 """
 
 import sys
@@ -12,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from tag_detection import _true_corners  # noqa: E402  (the twin's true corners, as the detection benchmark scores them)
@@ -22,10 +25,13 @@ from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import make_scene
 from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.camera import PinholeCamera
+from drillnav.schemas.calibration import camera_calibration_from_json
+from drillnav.schemas.camera_yaml import from_opencv_yaml
 from drillnav.registration.video_markers import VideoMarkerLocator, tag_object_points
 from drillnav.schemas import messages as msg
 
 CAMERA = PinholeCamera.from_fov(width=640, height=480, horizontal_fov_deg=76.0)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MISREAD_SEED, MISREAD_POSE, READ_AS, TRUE_MARKER = 3010, 1, 43, 25
 
 
@@ -80,3 +86,24 @@ def test_an_id_decoded_at_two_places_names_neither():
     alone = locator.locate(a)
     assert [m.marker_id for m in alone.markers] == [7] and alone.misread_ids == ()
     assert np.linalg.norm(alone.markers[0].corners_px - left, axis=1).max() < 0.5
+
+
+@pytest.mark.parametrize("gain", [0.5, 1.0, 1.5])
+@pytest.mark.parametrize("blur_px", [1.5, 2.0, 2.5])
+def test_rightly_decoded_tags_of_a_real_photograph_stand_though_their_cells_read_poorly(gain, blur_px):
+    """The ChArUco photograph's 17 tags (26 px, 3 px cells), exposed at ``gain`` and blurred: every tag ArUco decodes
+    lies where the sharp photograph puts that id, and none of them is set aside (the first rule tried, 2 cells and 10 %
+    of those read disagreeing, set aside 1-4 of them in 8 of these 9 conditions; another id fitting as well as the
+    tag's own, one in 2)."""
+    image = cv2.imread(str(DATA / "aruco" / "choriginal.jpg"))
+    camera = camera_calibration_from_json(from_opencv_yaml((DATA / "aruco" / "tutorial_camera_charuco.yml").read_text()))
+    locator = VideoMarkerLocator(camera=camera, marker_ids=range(17), tag_size_mm=20.0)
+    sharp = locator.locate(image).by_id()
+    assert sorted(sharp) == list(range(17))
+    frame = cv2.GaussianBlur(np.clip(image.astype(np.float64) * gain, 0, 255), (0, 0), blur_px).astype(np.uint8)
+    ids, corners = detect_aruco(locator._detectors["DICT_6X6_250"][0], cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+    assert ids, "ArUco decodes nothing: the condition no longer tests the check"
+    for i, c in zip(ids, corners):
+        assert np.linalg.norm(c.reshape(4, 2).mean(axis=0) - sharp[i].corners_px.mean(axis=0)) < 5.0
+    video = locator.locate(frame)
+    assert video.misread_ids == ()
