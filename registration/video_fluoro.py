@@ -204,6 +204,8 @@ def register_video_to_fluoro(
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
             sol, alternative = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
+        elif len(sol.used_ids) == 1 and len(every[sol.used_ids[0]].solutions) > 1:
+            sol, alternative = _settle_lone_marker_mirror(sol, every[sol.used_ids[0]], solve)
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
@@ -289,6 +291,44 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     best, other = (sol, alt) if sol.chi2 <= alt.chi2 else (alt, sol)
     if Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
         return best, None  # both starts reached the same solution
+    if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
+        return best, other.carm_from_drill
+    return best, None
+
+
+def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None]:
+    """One marker, posed over several views, whose fluoroscopy pose leaves other solutions open (``pose.solutions``): the
+    better of the joint solution and the solve from each other solution, and the other one's ``carm_from_drill`` if it
+    fits nearly as well (as :func:`_settle_constellation_mirror`).
+
+    The camera ties the drill rigidly to the marker: with one marker it cannot tell the marker's orientation in frame C,
+    so a mirror the views leave open turns the drill with it. Twin seed 11702 (AP+lateral, second frame): marker 15
+    alone, its pose 27 deg off in fluoroscopy with the mirror open, gave an axis 75 mm and 31 deg off under a 6.7 mm
+    bound.
+    """
+    i = sol.used_ids[0]
+    here = sol.carm_from_marker[i]
+    give_up = sol.chi2 + MIRROR_GIVE_UP * MIRROR_DELTA_CHI2 * max(sol.reduced_chi2, 1.0)
+    best, other = sol, None
+    for k, start in enumerate(pose.solutions):
+        start = np.asarray(start)
+        if Rotation.from_matrix(here[:3, :3].T @ start[:3, :3]).magnitude() < np.radians(2.0):
+            continue  # the solution the joint solve started from (or reached)
+        move = start @ invert(here)
+        observations = pose.solution_observations[k] if pose.solution_observations else pose.observations
+        try:
+            alt = joint_solve(carm_from_drill0=move @ sol.carm_from_drill, carm_from_marker0={**sol.carm_from_marker, i: start}, give_up_above_chi2=give_up,
+                              **{**solve, "observations": {**solve["observations"], i: observations}})
+        except DrillnavError:
+            continue
+        if set(alt.used_ids) != {i}:
+            continue
+        if alt.chi2 < best.chi2:
+            best, other = alt, best
+        elif other is None or alt.chi2 < other.chi2:
+            other = alt
+    if other is None or Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
+        return best, None
     if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
         return best, other.carm_from_drill
     return best, None
