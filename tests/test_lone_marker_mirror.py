@@ -13,30 +13,22 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from twin_images import operating_room_scene  # noqa: E402  (tests/: the study's scene of a seed and pair)
 
-from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, render_fluoro
 from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.video_fluoro import predicted_axis_error
 
-CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
 SEED, POSE, MARKER = 11702, 1, 15
 
 
 def test_one_marker_with_its_mirror_open_over_two_views_is_bounded_by_the_mirror():
-    if not CT.exists():
-        pytest.skip("../shared/data/ct is not present on this machine (the twin's scene needs the real CT as its anatomy)")
     import accuracy
 
-    patient = accuracy.load_patient(CT)
-    rng = np.random.default_rng(SEED)
-    pairs = list(accuracy._pairs(rng).items())
-    k = [p for p, _ in pairs].index("ap+lateral")
-    scene = accuracy.make_scene(seed=SEED, views=pairs[k][1], render=False, degradations=Degradations.parse("all"), voxel_anatomy=patient)
+    scene, k = operating_room_scene(SEED, "ap+lateral")
     image_rng = np.random.default_rng([SEED, k, 1])
     dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
     poses = tuple(register_markers([dets[n] for n in ("ap", "lateral")], [scene.views[n] for n in ("ap", "lateral")], scene.marker_set))

@@ -20,6 +20,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from tag_detection import _true_corners  # noqa: E402  (the twin's true corners, as the detection benchmark scores them)
 from tag_frames import synthetic_tag_frame  # noqa: E402
+from twin_images import operating_room_scene  # noqa: E402  (tests/: the study's scene of a seed and pair)
 
 from drillnav.registration.aruco_detect import detect_aruco
 from drillnav.registration.camera import PinholeCamera
@@ -29,7 +30,6 @@ from drillnav.registration.video_markers import (DISPLACED_CORNER_CHECK_PX, RECO
 from drillnav.schemas import messages as msg
 
 CAMERA = PinholeCamera.from_fov(width=640, height=480, horizontal_fov_deg=76.0)
-CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
 
 
 def _gloved(tilt_deg: float, cut: float):
@@ -116,18 +116,9 @@ def test_a_corner_on_a_gloves_edge_is_placed_by_the_tags_edges_alone():
 def _twin_frame(seed: int, pose_index: int):
     """Operating-room twin (every degradation, the real CT as anatomy), the study's AP+lateral pair of ``seed``: (scene,
     true carm_from_drill, the camera's detections, frame) of drill pose ``pose_index``."""
-    if not CT.exists():
-        pytest.skip("../shared/data/ct is not present on this machine (the twin's frame needs the real CT as its anatomy)")
     import accuracy
 
-    from drillnav.drivers.sim.degradations import Degradations
-
-    patient = accuracy.load_patient(CT)
-    rng = np.random.default_rng(seed)
-    pairs = list(accuracy._pairs(rng).items())
-    k = [p for p, _ in pairs].index("ap+lateral")
-    scene = accuracy.make_scene(seed=seed, views=pairs[k][1], render=False, degradations=Degradations.parse("all"), voxel_anatomy=patient,
-                                image_size=(1280, 720))
+    scene, k = operating_room_scene(seed, "ap+lateral", image_size=(1280, 720))
     return (scene, *accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index])
 
 

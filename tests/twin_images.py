@@ -2,11 +2,14 @@
 
 Both render through :func:`drillnav.drivers.sim.camera.render_plane` (the true lens), for any camera; a frame of
 field markers where the jig should be, through the twin's marker renderer; and an operating-room twin frame with a
-gloved tag (:func:`gloved_frame`).
+gloved tag (:func:`gloved_frame`); the accuracy study's operating-room scene of a seed and view pair
+(:func:`operating_room_scene`).
 
 A full-frame render costs about a second of CPU, and several tests (in one pytest process) ask for the same views: each
 set is rendered once per process and handed out read-only, so a test that drew on a shared frame would fail loudly.
 """
+
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -110,3 +113,22 @@ def gloved_frame():
     image.setflags(write=False)
     locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
     return scene, pose, image, locator
+
+
+CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
+
+
+def operating_room_scene(seed: int, pair: str, **scene_args):
+    """The accuracy study's scene of ``seed`` and view ``pair`` (every degradation, the real CT as anatomy): (scene, k),
+    k the pair's index, which seeds its images (``accuracy.camera_shots``). Skips the test where the CT is absent."""
+    import pytest
+
+    if not CT.exists():
+        pytest.skip("../shared/data/ct is not present on this machine (the twin's scene needs the real CT as its anatomy)")
+    import accuracy
+
+    patient = accuracy.load_patient(CT)
+    pairs = list(accuracy._pairs(np.random.default_rng(seed)).items())
+    k = [p for p, _ in pairs].index(pair)
+    return accuracy.make_scene(seed=seed, views=pairs[k][1], render=False, degradations=Degradations.parse("all"), voxel_anatomy=patient,
+                               **scene_args), k
