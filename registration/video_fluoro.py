@@ -289,11 +289,15 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     if set(alt.used_ids) != set(sol.used_ids):
         return sol, None
     best, other = (sol, alt) if sol.chi2 <= alt.chi2 else (alt, sol)
-    if Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
-        return best, None  # both starts reached the same solution
-    if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
-        return best, other.carm_from_drill
-    return best, None
+    return best, _left_open(best, other)
+
+
+def _left_open(best: JointSolution, other: JointSolution | None) -> NDArray[np.float64] | None:
+    """``other``'s ``carm_from_drill`` when the data do not rule it out against ``best`` (within ``MIRROR_DELTA_CHI2``),
+    None when they do, when there is none, or when both starts reached the same solution."""
+    if other is None or Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
+        return None
+    return other.carm_from_drill if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0) else None
 
 
 def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None]:
@@ -327,11 +331,7 @@ def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict
             best, other = alt, best
         elif other is None or alt.chi2 < other.chi2:
             other = alt
-    if other is None or Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
-        return best, None
-    if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0):
-        return best, other.carm_from_drill
-    return best, None
+    return best, _left_open(best, other)
 
 
 def _spanning(covariance: NDArray[np.float64], carm_from_drill: NDArray[np.float64], mirror: NDArray[np.float64],
