@@ -186,14 +186,15 @@ def fit_square_to_edges(
 
     fit = fitted(rvec, tvec)
     first = excess(fit)
-    on_lines, crossed = _corners_on_lines(camera.undistort_pixels(np.asarray(predicted_px, dtype=np.float64)), lines)  # undistorted pixels
-    if first > RETRY_EXCESS and (fit is None or np.linalg.norm(_pinhole(camera, fit.x, obj)[crossed] - on_lines[crossed], axis=1).max(initial=0.0) > RETRY_MOVE_PX):
-        # Settled on another pose than the steps' (it misses where their lines cross): again from the corners the free
-        # lines give, the better kept.
-        ok, rvec, tvec = cv2.solvePnP(obj, on_lines.reshape(4, 1, 2), camera.camera_matrix, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        again = fitted(rvec, tvec) if ok else None
-        if excess(again) < first:
-            fit, first = again, excess(again)
+    if first > RETRY_EXCESS:
+        on_lines, crossed = _corners_on_lines(camera.undistort_pixels(np.asarray(predicted_px, dtype=np.float64)), lines)  # undistorted pixels
+        if fit is None or np.linalg.norm(_pinhole(camera, fit.x, obj)[crossed] - on_lines[crossed], axis=1).max(initial=0.0) > RETRY_MOVE_PX:
+            # Settled on another pose than the steps' (it misses where their lines cross): again from the corners the
+            # free lines give, the better kept.
+            ok, rvec, tvec = cv2.solvePnP(obj, on_lines.reshape(4, 1, 2), camera.camera_matrix, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            again = fitted(rvec, tvec) if ok else None
+            if excess(again) < first:
+                fit, first = again, excess(again)
     if fit is None:
         return None
     rot, t = _pose(fit.x)
