@@ -7,7 +7,9 @@ connected component fitted with an ellipse; the BBs inside it are rectified
 into the marker plane through the ellipse (circle of 24 mm) and matched with
 :func:`drillnav.registration.markers.identify`. A ring that touches the image
 border keeps its arc (and its BBs in the field) when at least half of it is
-in the field; two rings that merge are reported, not guessed.
+in the field; rings that cross in projection, one piece of wire too large to be
+a ring, are split into their ellipses (:mod:`.ring_split`) and each identified
+on its own.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from numpy.typing import NDArray
 
 from .carm import REFERENCE_PIXEL_MM, CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
+from .ring_split import split_rings
 
 __all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range", "blob_key"]
 
@@ -332,6 +335,12 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
                 markers += [r for r in alone if isinstance(r, DetectedMarker)]
                 rejected += [r for r in alone if isinstance(r, RejectedRing)]
                 continue
+        if isinstance(found, RejectedRing) and found.reason == _OVERLAP:
+            split = _split_overlap(piece[1], **ring)
+            if any(isinstance(r, DetectedMarker) for r in split):
+                markers += [r for r in split if isinstance(r, DetectedMarker)]
+                rejected += [r for r in split if isinstance(r, RejectedRing)]
+                continue
         if isinstance(found, DetectedMarker):
             markers.append(found)
         elif found is not None:
@@ -340,6 +349,29 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
     rejected += twice
     every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False, elongation=e) for c, d, e in blobs)
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _split_overlap(pts, *, blobs, **ring) -> list:
+    """The markers (and rejected rings) of a piece of wire too large to be one ring: rings overlapping in projection.
+
+    The piece is split into its ellipses (:func:`.ring_split.split_rings`) and each is taken as a ring of its own.
+    Where the ellipses overlap, one ring's BBs lie inside another: a ring that identifies no marker among every
+    blob inside it is tried again without the BBs the piece's identified markers matched.
+    """
+    rings = split_rings(pts, min_major_px=ring["min_ring_px"], max_major_px=ring["max_ring_px"], wire_px=ring["wire_px"], min_minor_ratio=0.25)
+    found: list = [None] * len(rings)
+    for _ in range(2):
+        taken = {blob_key(b.center_px) for m in found if isinstance(m, DetectedMarker) for b, i in zip(m.bbs, m.bb_index) if i >= 0}
+        free = [b for b in blobs if blob_key(b[0]) not in taken]
+        for k, own in enumerate(rings):
+            if isinstance(found[k], DetectedMarker):
+                continue
+            x, y = own.min(axis=0)
+            w, h = own.max(axis=0) - own.min(axis=0) + 1
+            found[k] = _ring_marker((int(x), int(y), int(w), int(h), len(own)), own, blobs=free if taken else blobs, **ring)
+        if not taken and not any(isinstance(m, DetectedMarker) for m in found):
+            break
+    return [f for f in found if f is not None]
 
 
 # identify's own limit on a pattern's mean alignment cost, and the looser one for a ring whose identity the camera

@@ -1,0 +1,81 @@
+"""Rings that overlap in projection: one piece of wire split into its ellipses, each ring identified on its own.
+
+Markers lie close together on the anterior skin; in a lateral view their rings project across one another and their
+wires form one piece too large to be a ring. Such a piece was rejected ("rings overlap in projection") with every
+marker in it. On the operating-room twin (seed 11800, AP+lateral, every degradation, the real CT) the lateral view
+identified one marker of five; marker 13, whose ring crosses a neighbour's, is now identified too.
+"""
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from twin_images import operating_room_scene  # noqa: E402  (tests/: the study's scene of a seed and pair)
+
+from drillnav.drivers.sim.scene import render_fluoro
+from drillnav.registration.fluoro_markers import detect_in_view
+from drillnav.registration.ring_split import ellipse_distance, split_rings
+
+SHAPE = (600, 600)
+
+
+def _wire(ellipses, *, thickness=5, cut=()):
+    """Pixels (N, 2) float32 (column, row) of rings drawn ``thickness`` px wide, less the boxes ``cut`` (x0, y0, x1, y1)."""
+    img = np.zeros(SHAPE, np.uint8)
+    for (cx, cy), (d1, d2), angle in ellipses:
+        cv2.ellipse(img, ((cx, cy), (d1, d2), angle), 1, thickness)
+    for x0, y0, x1, y1 in cut:
+        img[y0:y1, x0:x1] = 0
+    return np.column_stack(np.nonzero(img)[::-1]).astype(np.float32)
+
+
+def _matches(found, truth, *, tol_px=2.5):
+    """Whether each true ellipse has a found ring whose pixels lie on it (median distance under ``tol_px``)."""
+    return all(any(np.median(ellipse_distance(r.astype(np.float64), t)[0]) < tol_px for r in found) for t in truth)
+
+
+def test_two_crossing_rings_are_split_into_two():
+    truth = [((300.0, 280.0), (140.0, 300.0), 160.0), ((250.0, 370.0), (75.0, 260.0), 5.0)]
+    rings = split_rings(_wire(truth), min_major_px=33.0, max_major_px=380.0, wire_px=5.8)
+    assert len(rings) == 2
+    assert _matches(rings, truth)
+
+
+def test_three_rings_in_a_chain_and_a_ring_cut_by_a_clamp():
+    truth = [((300.0, 150.0), (120.0, 280.0), 150.0), ((330.0, 260.0), (70.0, 270.0), 165.0), ((280.0, 420.0), (110.0, 260.0), 10.0)]
+    rings = split_rings(_wire(truth, cut=[(250, 440, 330, 470)]), min_major_px=33.0, max_major_px=380.0, wire_px=5.8)
+    assert len(rings) == 3
+    assert _matches(rings, truth)
+
+
+def test_a_piece_that_is_no_ring_gives_none():
+    img = np.zeros(SHAPE, np.uint8)
+    cv2.line(img, (20, 30), (560, 500), 1, 6)  # a K-wire
+    cv2.line(img, (40, 520), (500, 60), 1, 6)
+    pts = np.column_stack(np.nonzero(img)[::-1]).astype(np.float32)
+    assert split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8) == ()
+
+
+def test_split_is_deterministic():
+    truth = [((300.0, 280.0), (140.0, 300.0), 160.0), ((250.0, 370.0), (75.0, 260.0), 5.0)]
+    pts = _wire(truth)
+    a = split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8)
+    b = split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8)
+    assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def test_a_marker_whose_ring_crosses_a_neighbours_is_identified_in_a_lateral_view():
+    scene, k = operating_room_scene(11800, "ap+lateral")
+    image_rng = np.random.default_rng([11800, k, 1])
+    images = {n: render_fluoro(scene, n, image_rng) for n in scene.views}
+    view = scene.views["lateral"]
+    found = detect_in_view(images["lateral"], view, scene.marker_set)
+    ids = [m.marker_id for m in found.markers]
+    assert 13 in ids, ids
+    assert not any(r.reason == "rings overlap in projection" for r in found.rejected)
+    for m in found.markers:  # every identified marker is where the twin put it
+        centre = view.project(scene.carm_from_marker[m.marker_id][:3, 3][None])[0]
+        assert np.linalg.norm(centre - np.asarray(m.ring_ellipse[0])) < 20.0, m.marker_id
