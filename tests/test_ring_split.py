@@ -79,3 +79,19 @@ def test_a_marker_whose_ring_crosses_a_neighbours_is_identified_in_a_lateral_vie
     for m in found.markers:  # every identified marker is where the twin put it
         centre = view.project(scene.carm_from_marker[m.marker_id][:3, 3][None])[0]
         assert np.linalg.norm(centre - np.asarray(m.ring_ellipse[0])) < 20.0, m.marker_id
+
+
+def test_a_ring_seen_at_77_deg_to_the_beam_is_identified_in_a_lateral_view():
+    # Seed 10800's lateral view: marker 31 lies 77 deg to the beam, its ring's ellipse 0.22 as wide as long. Rings
+    # flatter than 0.25 were all taken for edge-on; down to EDGE_ON_MINOR_RATIO (0.2) they identify their marker.
+    scene, k = operating_room_scene(10800, "ap+lateral")
+    image_rng = np.random.default_rng([10800, k, 1])
+    images = {n: render_fluoro(scene, n, image_rng) for n in scene.views}
+    view = scene.views["lateral"]
+    found = {m.marker_id: m for m in detect_in_view(images["lateral"], view, scene.marker_set).markers}
+    assert 31 in found, sorted(found)
+    (_c, (d1, d2), _a) = found[31].ring_ellipse
+    assert 0.2 <= min(d1, d2) / max(d1, d2) < 0.25
+    for marker_id, m in found.items():
+        centre = view.project(scene.carm_from_marker[marker_id][:3, 3][None])[0]
+        assert np.linalg.norm(centre - np.asarray(m.ring_ellipse[0])) < 20.0, marker_id
