@@ -27,8 +27,7 @@ MIN_SECTORS = 27
 SECTORS = 36
 # Draws per ring looked for; the five pixels of a draw are taken within a ring's largest extent of the first one.
 DRAWS = 500
-# Pixels within this of a candidate ellipse (px) count for it; wider than the wire's half width so that a thick
-# wire's two sides both count as the ring's.
+# The grid (px) the fits run on: a wire 4-6 px wide holds several of its pixels per step along it.
 _GRID_PX = 2.0
 
 
@@ -56,11 +55,12 @@ def _sectors(theta: NDArray[np.float64]) -> int:
 
 
 def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_major_px: float, wire_px: float,
-                min_minor_ratio: float = 0.25, max_rings: int = 4, seed: int = 0) -> tuple[NDArray[np.float32], ...]:
+                min_minor_ratio: float = 0.2, max_rings: int = 4, seed: int = 0) -> tuple[NDArray[np.float32], ...]:
     """The rings (each its pixels (K, 2) float32, column, row) that one piece of wire ``points_px`` (N, 2) is made of.
 
     A ring is an ellipse of major axis ``min_major_px``-``max_major_px`` whose minor axis is at least
-    ``min_minor_ratio`` of its major (flatter is edge-on, which identifies nothing), whose circumference the
+    ``min_minor_ratio`` of its major (flatter is edge-on, which identifies nothing: the detector passes its
+    ``EDGE_ON_MINOR_RATIO``), whose circumference the
     piece's pixels follow over MIN_SECTORS of SECTORS sectors within ``wire_px`` (the wire's width). Its pixels are
     those within ``wire_px`` of it; a pixel where two rings cross goes to both. Deterministic for one ``seed``.
     Empty when no ring is found, as for a piece that is no ring at all.
@@ -68,9 +68,8 @@ def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_majo
     pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
     if len(pts) < 10:
         return ()
-    # The fits run on a 2 px grid of the piece's pixels: a wire 4-6 px wide holds several pixels per step along it.
     grid = np.unique(np.round(pts / _GRID_PX).astype(np.int64), axis=0).astype(np.float64) * _GRID_PX
-    tol = max(1.5, 0.5 * wire_px)
+    tol = max(1.5, 0.5 * wire_px)  # a pixel this near a candidate counts for it
     rng = np.random.default_rng(seed)
     left = np.ones(len(grid), dtype=bool)
     rings = []
