@@ -493,12 +493,29 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
                                              joint=joint, search=search)
             if again is not video:
                 video, reg = again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
-    if named and len(reg.used_ids) < NAMED_BELOW_MARKERS:
+    if named and (len(reg.used_ids) < NAMED_BELOW_MARKERS or _in_one_view_of_two(reg, video, every=every, locator=locator)):
         got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
                                             used_before=len(reg.used_ids))
         if got is not None:
             return got
     return video, reg
+
+
+def _views(pose: MarkerPose) -> set[int]:
+    """The fluoroscopy views (by identity) in which ``pose``'s BBs were found."""
+    return {id(view) for view, _, _ in pose.observations}
+
+
+def _in_one_view_of_two(reg: DrillRegistration, video: VideoDetections, *, every: tuple[MarkerPose, ...], locator: VideoMarkerLocator) -> bool:
+    """Whether every marker ``reg`` uses was found in one and the same fluoroscopy view, while a posed marker the
+    frame misses was found in another: such a registration rests on one view's depth (a marker's place along its
+    beam is fixed by its BB pattern's scale alone, millimetres off), and the missing marker's tag, named among the
+    posed (:func:`_registration_with_named_tags`), would give it the second view."""
+    by_id = {p.marker_id: p for p in every}
+    used = [_views(by_id[i]) if i in by_id else set() for i in reg.used_ids]
+    if not used or not all(used) or len(one := set.union(*used)) != 1:
+        return False
+    return any(_views(p) - one for p in _missing(video, every, locator))
 
 
 def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetections, *, locator: VideoMarkerLocator, camera: PinholeCamera,
