@@ -8,8 +8,9 @@ into the marker plane through the ellipse (circle of 24 mm) and matched with
 :func:`drillnav.registration.markers.identify`. A ring that touches the image
 border keeps its arc (and its BBs in the field) when at least half of it is
 in the field; rings that cross in projection, one piece of wire too large to be
-a ring, are split into their ellipses (:mod:`.ring_split`) and each identified
-on its own.
+a ring or whose BBs match no marker and whose pixels do not follow one ellipse,
+are split into their ellipses (:mod:`.ring_split`) and each identified on its
+own.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 
 from .carm import REFERENCE_PIXEL_MM, CArmView
 from .markers import MarkerNotIdentified, MarkerSet, identify
-from .ring_split import split_rings
+from .ring_split import ellipse_distance, split_rings
 
 __all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "detect_in_view", "detect_markers", "magnification_range", "blob_key"]
 
@@ -317,6 +318,8 @@ EDGE_ON_MINOR_RATIO = 0.2
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
 _OUTSIDE = "ring mostly outside the field of view"
+# Rejections of a ring's BB pattern: too many BBs inside one ellipse can be two rings' (_one_ellipse).
+_NO_MATCH = ("no marker matches", "ambiguous BB pattern")
 # Rejections that a lower threshold cannot change: geometry, not contrast.
 _NOT_CONTRAST = (_OVERLAP, _EDGE_ON, _OUTSIDE, "marker id ")
 
@@ -340,7 +343,7 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
                 markers += [r for r in alone if isinstance(r, DetectedMarker)]
                 rejected += [r for r in alone if isinstance(r, RejectedRing)]
                 continue
-        if isinstance(found, RejectedRing) and found.reason == _OVERLAP:
+        if isinstance(found, RejectedRing) and (found.reason == _OVERLAP or (found.reason.startswith(_NO_MATCH) and not _one_ellipse(piece[1], ring["wire_px"]))):
             split = _split_overlap(piece[1], **ring)
             if any(isinstance(r, DetectedMarker) for r in split):
                 markers += [r for r in split if isinstance(r, DetectedMarker)]
@@ -356,8 +359,17 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
 
 
+def _one_ellipse(pts, wire_px: float, *, share: float = 0.85) -> bool:
+    """Whether at least ``share`` of a piece's pixels (N, 2) lie within ``wire_px`` of the one ellipse fitted to them:
+    two rings crossing within one ring's size make a piece no larger than a ring, whose single ellipse runs between
+    them, and whose BBs (both markers') match no marker."""
+    d, _theta = ellipse_distance(np.asarray(pts, dtype=np.float64), cv2.fitEllipse(pts))
+    return float(np.mean(d < wire_px)) >= share
+
+
 def _split_overlap(pts, *, blobs, **ring) -> list:
-    """The markers (and rejected rings) of a piece of wire too large to be one ring: rings overlapping in projection.
+    """The markers (and rejected rings) of a piece of wire made of rings crossing in projection: too large to be one
+    ring, or fitted by one ellipse its pixels do not follow (:func:`_one_ellipse`) whose BBs matched no marker.
 
     The piece is split into its ellipses (:func:`.ring_split.split_rings`) and each is taken as a ring of its own.
     Where the ellipses overlap, one ring's BBs lie inside another: a ring that identifies no marker among every
