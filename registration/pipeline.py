@@ -525,7 +525,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     in fluoroscopy (``every``: loose hypotheses included) that it misses (:meth:`.VideoMarkerLocator.name_among_posed`),
     when it bears them out: (detections with the named tags it used, registration), or None.
 
-    Borne out: the registration uses at least two markers, more than ``used_before`` (the markers the frame's
+    Borne out: the registration uses at least two markers (one, where a named marker it uses is
+    ``identified_by_code``: its code identifies it dictionary-wide), more than ``used_before`` (the markers the frame's
     registration used without them; 0 when it was refused), one of them named, and every marker it uses lies within
     ``NAMED_MAX_FRE_MM`` of where fluoroscopy puts it. A named tag whose marker misfits the others is rejected by the
     joint solve like any marker, and dropped; markers kept agree on their places in the camera and in fluoroscopy,
@@ -544,7 +545,10 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     except DrillnavError:  # the names are not borne out (nothing usable, degenerate, not converged): the frame keeps its own result
         return None
     used = set(reg.used_ids)
-    if len(used) < max(2, used_before + 1) or not used & {m.marker_id for m in named}:
+    # A name whose code identifies it dictionary-wide stands alone, as a tag the search found would; any other only
+    # beside another marker.
+    alone = any(m.identified_by_code and m.marker_id in used for m in named)
+    if len(used) < max(1 if alone else 2, used_before + 1) or not used & {m.marker_id for m in named}:
         return None
     if any(reg.fre_mm.get(i, np.inf) > NAMED_MAX_FRE_MM for i in used):
         return None

@@ -24,7 +24,7 @@ from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positio
 from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, dictionary_codes, fit_tag_edges, read_code, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
 from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, outline_hypotheses
-from .tag_search import search_tags
+from .tag_search import identify_quad, search_tags
 from .transforms import make_transform
 
 __all__ = ["VideoMarker", "VideoDetections", "VideoMarkerLocator", "detect_tags", "tag_object_points", "placed_elsewhere", "PLACED_MARGIN_PX",
@@ -83,6 +83,10 @@ class VideoMarker:
         tag (up to one corner is the crossing of two partly hidden edges).
     named_among_posed : its code read only in part, it was named among the markers posed in fluoroscopy that the
         frame had not found (:mod:`.tag_hypotheses`), and a registration bore the name out; also ``recovered``.
+    identified_by_code : ``named_among_posed`` only: its code, though read in part, also meets the dictionary-wide
+        rule of a tag found with no prediction (:func:`.tag_search.identify_quad`: 20 cells or more read, 90 % of
+        them agreeing, every other id of the dictionary at least 4 behind): the name stands without another marker
+        beside it. Its corners are still its outline's.
     """
 
     marker_id: int
@@ -94,6 +98,7 @@ class VideoMarker:
     recovered: bool = False
     corner_sigma_px: float = 0.1
     named_among_posed: bool = False
+    identified_by_code: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -564,8 +569,10 @@ class VideoMarkerLocator:
         code, read only in part, names one of them (:func:`.tag_hypotheses.outline_hypotheses`).
 
         Each is returned as a marker flagged ``recovered`` and ``named_among_posed``, its covariance computed with
-        ``OUTLINE_CORNER_SIGMA_PX`` (``RECOVERED_CORNER_SIGMA_PX`` where its edges were fitted). They are not added to
-        ``video``: a caller adds them only where a registration bears them out.
+        ``OUTLINE_CORNER_SIGMA_PX`` (``RECOVERED_CORNER_SIGMA_PX`` where its edges were fitted), and
+        ``identified_by_code`` where its code, read on the outline's corners, meets the dictionary-wide rule (the
+        search's, with the set's ids as rivals). They are not added to ``video``: a caller adds them only where a
+        registration bears them out.
         """
         missing = self._missing(video, marker_ids)
         if not missing:
@@ -578,6 +585,7 @@ class VideoMarkerLocator:
                                           half_above_px=self.detect_below_px):
                 spec = per[hyp.aruco_id]
                 gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
+                by_code = identify_quad(gray_f, hyp.corners_px, dictionary=name, wanted=[hyp.aruco_id], partial=True, rivals=list(per)) is not None
                 marker = self._pose(spec, hyp.corners_px, corner_sigma_px=RECOVERED_CORNER_SIGMA_PX if hyp.edges_fitted else OUTLINE_CORNER_SIGMA_PX)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # An outline with one corner on a glove's edge: placed by its edges from three of its corners (the
@@ -587,7 +595,7 @@ class VideoMarkerLocator:
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     marker = placed if placed is not None else marker
-                named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True))
+                named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True, identified_by_code=by_code))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:
