@@ -456,7 +456,10 @@ def predicted_axis_error(
     point_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], point_d) + carm_from_drill[:, :3, 3]
     direction_c = np.einsum("bij,bj->bi", carm_from_drill[:, :3, :3], direction_d)
     direction_c /= np.linalg.norm(direction_c, axis=1, keepdims=True)
-    nearest = point_c + np.sum((ref - point_c) * direction_c, axis=1, keepdims=True) * direction_c
+    # Each drawn axis is scored as an error is: its point nearest the working point against the registered axis's
+    # (``ref``). Not the drawn axis's distance from ``ref``: for an axis turned far (a one-marker mirror, 62 deg) that
+    # is its foot from ``ref``, tens of millimetres nearer than its point at the working point.
+    nearest = point_c + np.sum((working_point_carm_mm - point_c) * direction_c, axis=1, keepdims=True) * direction_c
     pos = np.linalg.norm(nearest - ref, axis=1)
     ang = np.degrees(np.arccos(np.clip(direction_c @ axis_c.direction, -1.0, 1.0)))
     p90, p95 = (float(v) for v in np.percentile(pos, [90, 95]))
@@ -464,7 +467,7 @@ def predicted_axis_error(
     if registration.mirror_carm_from_drill is not None:
         # The data do not rule out the mirror solution: the bounds reach the axis it gives.
         alt = axis_drill.transformed(registration.mirror_carm_from_drill)
-        alt_pos = float(np.linalg.norm(alt.closest_point(ref) - ref))
+        alt_pos = float(np.linalg.norm(alt.closest_point(working_point_carm_mm) - ref))
         alt_ang = alt.angle_deg(axis_c)
         p90, p95, a90, a95 = max(p90, alt_pos), max(p95, alt_pos), max(a90, alt_ang), max(a95, alt_ang)
     return PredictedError(

@@ -23,7 +23,7 @@ from drillnav.registration.joint_solve import BB_COMMON_SIGMA_PX, BB_SCALE_SIGMA
 from drillnav.registration.line import Line3D
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.transforms import apply, make_transform
-from drillnav.registration.video_fluoro import RELIABLE_ANGLE_DEG, predicted_axis_error, register_video_to_fluoro
+from drillnav.registration.video_fluoro import RELIABLE_ANGLE_DEG, DrillRegistration, predicted_axis_error, register_video_to_fluoro
 from drillnav.registration.video_markers import VideoDetections, VideoMarker
 
 BB_SIGMA_PX, CORNER_SIGMA_PX = 0.35, 0.3  # joint_solve's noise model
@@ -246,3 +246,24 @@ def test_no_large_single_view_error_goes_unflagged(scene):
     assert a[:, 0].max() > 1.0, a.max(axis=0)
     assert not np.any((a[:, 0] > 10.0) & (a[:, 2] > 0.5)), a[a[:, 0] > 10.0]
     assert not np.any((a[:, 0] > RELIABLE_ANGLE_DEG) & (a[:, 2] > 0.5)), a[a[:, 0] > RELIABLE_ANGLE_DEG]
+
+
+def test_the_bound_reaches_an_open_mirror_where_its_axis_meets_the_working_point():
+    """A mirror turned far from the registered axis (a one-marker registration whose single-view pose is 62 deg off,
+    twin seed 11001's inlet view: 123.7 mm off under a 101.5 mm bound) is scored as an error is: its point nearest
+    the working point against the registered axis's. Its foot from the registered axis's point lies far nearer."""
+    axis = Line3D(point_mm=np.zeros(3), direction=np.array([0.0, 0.0, 1.0]))
+    turn = Rotation.from_euler("x", 62.0, degrees=True).as_matrix()
+    pivot = np.array([0.0, 60.0, 150.0])
+    mirror = make_transform(turn, pivot - turn @ pivot)
+    reg = DrillRegistration(carm_from_drill=np.eye(4), carm_from_drill_horn=np.eye(4), fre_mm={7: 0.1}, used_ids=(7,), rejected_ids=(),
+                            corner_rms_px=0.2, covariance_drill=np.diag([1e-8] * 3 + [1e-4] * 3), pivot_carm_mm=np.zeros(3),
+                            mirror_carm_from_drill=mirror)
+    working = np.array([20.0, 50.0, 120.0])
+    ref = axis.closest_point(working)
+    alt = axis.transformed(mirror)
+    at_working = float(np.linalg.norm(alt.closest_point(working) - ref))  # 44.5 mm
+    assert at_working - float(np.linalg.norm(alt.closest_point(ref) - ref)) > 30.0  # the foot from ref: 5.3 mm
+    pe = predicted_axis_error(VideoDetections(markers=(), ignored_ids=(), image_size=(1280, 720)), (), reg, axis, working_point_carm_mm=working)
+    assert pe.position90_mm == pytest.approx(at_working, abs=0.1)
+    assert pe.angle90_deg == pytest.approx(62.0, abs=0.1) and not pe.reliable
