@@ -534,7 +534,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     ``every``: the poses the registration is given (loose hypotheses included, as for the frame's own).
     """
     # A loose hypothesis's marker is wanted too: the camera's word on the ring it waits for is that marker's tag, and
-    # a name read in part is borne out, like any, only beside another marker (corroborate_loose, the claims).
+    # a name read in part is borne out, like any, only beside another marker (corroborate_loose, the claims), unless
+    # its code identifies it dictionary-wide.
     wanted = {p.marker_id for p in _missing(video, every, locator)}
     named = locator.name_among_posed(image, video, wanted)
     if not named:

@@ -19,8 +19,8 @@ caller lets a hypothesis into a registration only where the registration bears i
 (:func:`.pipeline.register_with_recovery`: the joint solve keeps it beside another marker it fits, the two
 markers' places agreeing in the camera and in fluoroscopy). A name whose code also meets the dictionary-wide rule
 of a tag found with no prediction (:func:`.tag_search.identify_quad`, 20 cells or more: the caller checks,
-:attr:`.video_markers.VideoMarker.identified_by_code`) is an identity, and may stand alone. Its corners are as good as the outline, a few pixels
-(:data:`OUTLINE_CORNER_SIGMA_PX`): the joint solve weighs them so.
+:attr:`.video_markers.VideoMarker.identified_by_code`) is an identity, and may stand alone. Its corners are as good
+as the outline, a few pixels (:data:`OUTLINE_CORNER_SIGMA_PX`): the joint solve weighs them so.
 
 Pure math: numpy and OpenCV's image functions.
 """

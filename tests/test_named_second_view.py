@@ -4,9 +4,10 @@ A marker posed in one view has its place along that view's beam fixed by its BB 
 a registration on such markers only, all in one view, carries that error onto the axis. On the operating-room twin
 (seed 11802, AP+lateral, the study's first drill pose: every degradation, the real CT) the camera reads marker 33's
 tag, and 10's is recovered where the registration on 33 puts it: both markers were identified in the lateral view
-alone. Marker 13, posed in the AP view, has its tag's code read only in part. The registration rested on 10 and 33 and came out 3.5 mm off at the corridor's entry.
-Tags named among the posed markers (:mod:`drillnav.registration.tag_hypotheses`) are now tried for such a registration
-too, not only for one on a single marker; 13 is named and the registration spans both views.
+alone. Marker 13, posed in the AP view, has its tag's code read only in part. The registration rested on 10 and 33
+and came out 3.5 mm off at the corridor's entry. Tags named among the posed markers
+(:mod:`drillnav.registration.tag_hypotheses`) are now tried for such a registration too, not only for one on a
+single marker; 13 is named and the registration spans both views.
 """
 
 import sys
