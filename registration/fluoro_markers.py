@@ -310,11 +310,23 @@ WORKING_PIXEL_MM = REFERENCE_PIXEL_MM
 # holding no BBs (tests/test_real_anatomy_background.py: on 12 seeds each, a single threshold failed 8 sharp scenes
 # and 7 dense ones, hysteresis 1 of each).
 WIRE_HYSTERESIS = 0.5
-# A ring whose ellipse is flatter than this (minor over major axis: about the cosine of its tilt to the beam, 78 deg
-# at 0.2) is edge-on: its BBs, rectified through it, are stretched too far to identify. Markers on the anterior skin
-# lie 60-89 deg to a lateral beam. At 0.25 (75.5 deg) the lateral views of 18 seeds of the study identified 21 of 85
-# markers in the field; at 0.2, 29, and at 0.15, 30 with 4 more rings matching no marker; none wrongly at any of them.
-EDGE_ON_MINOR_RATIO = 0.2
+# A ring whose ellipse is flatter than this (minor over major axis: about the cosine of its tilt to the beam, 83 deg
+# at 0.12) is edge-on: too little of its BB pattern is left across the ellipse to identify. Markers on the anterior
+# skin lie 60-89 deg to a lateral beam. Rectified through the ellipse alone, a flat ring's BBs are stretched too far to
+# identify (the limit was 0.2, 78 deg: the lateral views of 18 seeds of the study identified 21 of 85 markers in the
+# field at 0.25, 29 at 0.2). Matched in the image's own measure (FLAT_MINOR_RATIO), the lateral views of study seeds
+# 10400-11800 (16 seeds, AP+lateral) identify 19 markers at 0.2, 21 with that measure alone, 26 with it at 0.15, 28 at
+# 0.12 (22 at 0.12 without it) and no more at 0.1 or 0.07; none wrongly. Their random and inlet/outlet pairs: 103 ->
+# 106 and 109 -> 109, the one wrong identity among them unchanged.
+EDGE_ON_MINOR_RATIO = 0.12
+# A ring flatter than this whose rectified BBs match no marker is matched again with each difference measured as the
+# image shows it: the stretched axis shrunk back by the ellipse's minor over major (identify's ``metric``). Stretched
+# by major / minor, a flat ring's BB noise and its ellipse's error grow with it: seed 10901's lateral view, a marker
+# 81 deg to the beam with all 7 BBs found, costs 0.25 mm rectified through its true ellipse and 0.06 mm so measured.
+# So measured, a pattern also tells its two faces apart less well across the ellipse; a ring 61 deg to the beam (0.49)
+# took the wrong face (seed 11901's random pair: the registration 0.76 -> 28 mm off). The rings this identifies on the
+# study's seeds lie 0.12-0.27.
+FLAT_MINOR_RATIO = 0.3
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
 _OUTSIDE = "ring mostly outside the field of view"
@@ -436,6 +448,13 @@ def _ring_marker(stats, pts, *, blobs, marker_set: MarkerSet, ring_r: float, wir
     elong = np.array([b[2] for b in inside])
     plane = _rectify(centers, ellipse) / scale
     ident, diam_mm, last_error = _identify_ring(plane, diam_px, marker_set, max_cost_mm=IDENTIFY_MAX_COST_MM)
+    no_match = isinstance(last_error, MarkerNotIdentified) and str(last_error).startswith("no marker matches")
+    if ident is None and no_match and minor < FLAT_MINOR_RATIO * major:
+        # _rectify stretched each ellipse axis d to the major (2 major): d / (2 major) measures it as the image does.
+        image_measure = (d1 / (2 * major), d2 / (2 * major))
+        flat, flat_mm, _ = _identify_ring(plane, diam_px, marker_set, max_cost_mm=IDENTIFY_MAX_COST_MM, metric=image_measure)
+        if flat is not None:
+            ident, diam_mm = flat, flat_mm
     if ident is None:
         reason = str(last_error) if last_error else "no central BB found inside the ring"
         candidate = None
@@ -467,9 +486,9 @@ def _loose(plane, diam_px, centers, ellipse, marker_set: MarkerSet, elongation) 
     return tuple(out)
 
 
-def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float):
+def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float, metric: tuple[float, float] | None = None):
     """(identification or None, BB diameters mm, the last identification error or None) of a ring's BBs rectified
-    into its plane (N, 2) mm, identified at ``max_cost_mm``."""
+    into its plane (N, 2) mm, identified at ``max_cost_mm`` (and identify's ``metric``)."""
     ident, diam_mm, last_error = None, None, None
     order = np.argsort(np.linalg.norm(plane, axis=1))
     # Every marker's smallest BB is 2.0 mm (the central one), so the smallest blob calibrates the sizes. A
@@ -482,7 +501,7 @@ def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float)
             if sizes_mm[c] > 2.75 or np.linalg.norm(plane[c]) > 6.0:
                 continue
             try:
-                candidate = identify(plane - plane[c], sizes_mm, marker_set, max_cost_mm=max_cost_mm)
+                candidate = identify(plane - plane[c], sizes_mm, marker_set, max_cost_mm=max_cost_mm, metric=metric)
             except MarkerNotIdentified as exc:
                 last_error = exc
                 continue
@@ -496,7 +515,7 @@ def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float)
         # is one of the code's 2.0 mm BBs, and the central BB is the pattern's one missing BB.
         sizes_mm = diam_px * (2.0 / diam_px.min())
         try:
-            ident, diam_mm = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm), sizes_mm
+            ident, diam_mm = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm, metric=metric), sizes_mm
         except MarkerNotIdentified as exc:
             last_error = exc
         if ident is not None and np.any(ident.bb_index == 0):

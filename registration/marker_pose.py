@@ -368,8 +368,11 @@ def register_markers(
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
     # leaves them free, for the video's identities to claim.
-    solved = {p.marker_id for p in poses}
-    claimed = [{blob_key(b.center_px) for m in det.markers if m.marker_id in solved for b in m.bbs} for det in detections]
+    # A view whose identification of a marker its pose left out (the views did not converge together: that view's BBs
+    # paired wrongly) claims none of its blobs: the pose claims them there by projection, paired anew.
+    posed_in = {p.marker_id: {id(o[0]) for o in p.observations} for p in poses}
+    claimed = [{blob_key(b.center_px) for m in det.markers if id(view) in posed_in.get(m.marker_id, ()) for b in m.bbs}
+               for det, view in zip(detections, views)]
     free = [np.array([b.center_px for b in det.blobs if blob_key(b.center_px) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
     non_disc = [{blob_key(b.center_px) for b in det.blobs if not b.places and blob_key(b.center_px) not in claimed[k]} for k, det in enumerate(detections)]
     blobs = dict(view_blobs=tuple(zip(views, free)),

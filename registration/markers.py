@@ -243,8 +243,9 @@ class Identification:
 ASSIGNMENT_TIE_MM = 0.1
 
 
-def _match_costs(obs_xy, obs_large, design: MarkerDesign, angles, mirrored: bool, tol: float):
-    """Alignment cost (A,) and assignment (A, N) of the observation to the design at each angle."""
+def _match_costs(obs_xy, obs_large, design: MarkerDesign, angles, mirrored: bool, tol: float, metric: tuple[float, float] | None = None):
+    """Alignment cost (A,) and assignment (A, N) of the observation to the design at each angle. ``metric`` (2,):
+    weights of the two plane axes' differences (None: 1, 1)."""
     d_xy = design.bb_centers_mm[:, :2].copy()
     if mirrored:
         d_xy[:, 1] *= -1
@@ -252,7 +253,8 @@ def _match_costs(obs_xy, obs_large, design: MarkerDesign, angles, mirrored: bool
     rot_x = c[:, None] * d_xy[None, :, 0] - s[:, None] * d_xy[None, :, 1]
     rot_y = s[:, None] * d_xy[None, :, 0] + c[:, None] * d_xy[None, :, 1]
     d_large = design.bb_diameters_mm > 2.75
-    dist = np.hypot(obs_xy[None, :, None, 0] - rot_x[:, None, :], obs_xy[None, :, None, 1] - rot_y[:, None, :])
+    wx, wy = (1.0, 1.0) if metric is None else metric
+    dist = np.hypot(wx * (obs_xy[None, :, None, 0] - rot_x[:, None, :]), wy * (obs_xy[None, :, None, 1] - rot_y[:, None, :]))
     dist = dist + np.where(obs_large[:, None] != d_large[None, :], tol, 0.0)[None]
     idx = np.argmin(dist, axis=2)
     best = np.take_along_axis(dist, idx[:, :, None], axis=2)[:, :, 0]
@@ -275,11 +277,14 @@ def identify(
     tolerance_mm: float = 2.5,
     max_cost_mm: float = 0.9,
     min_margin_mm: float = 0.15,
+    metric: tuple[float, float] | None = None,
 ) -> Identification:
     """Identify a marker from BB centres (N, 2) rectified into its plane (central BB near the origin).
 
     Tolerates a missing or spurious BB and noise of about 1 mm; tries every
-    in-plane rotation (1 deg steps, then refined) and both faces.
+    in-plane rotation (1 deg steps, then refined) and both faces. ``metric``: weights (2,) of the differences along
+    the plane's two axes in every distance (None: both 1), e.g. a flat ring's stretched axis measured as the image
+    shows it (:data:`.fluoro_markers.FLAT_MINOR_RATIO`).
     """
     obs = np.asarray(points_plane_mm, dtype=np.float64).reshape(-1, 2)
     large = np.asarray(diameters_mm, dtype=np.float64).reshape(-1) > 2.75
@@ -290,7 +295,7 @@ def identify(
     for design in marker_set.markers:
         best = (np.inf, None, 0.0, False)
         for mirrored in (False, True):
-            costs, idx = _match_costs(obs, large, design, angles, mirrored, tolerance_mm)
+            costs, idx = _match_costs(obs, large, design, angles, mirrored, tolerance_mm, metric)
             matches[design.marker_id, mirrored] = (costs, idx)
             k = int(np.argmin(costs))
             if costs[k] < best[0]:
