@@ -109,8 +109,8 @@ def test_two_pairs_of_crossing_rings_each_no_larger_than_a_ring_are_split():
 def test_a_ring_81_deg_to_the_beam_crossed_by_a_neighbour_is_identified_in_a_lateral_view():
     # Seed 10901's lateral view: marker 3 lies 81 deg to the beam, its ring a thin ellipse (0.16 as wide as long) that a
     # neighbour's arc crosses. One ellipse through both put its centre 30 px off and its 7 BBs, all found, matched no
-    # marker (1.64 mm); the split found no ring as flat as this one (the edge-on limit was 0.2). Split at 0.12 and
-    # matched as the image shows a flat ring's BBs (FLAT_MINOR_RATIO), it identifies marker 3.
+    # marker (1.64 mm); the split found no ring as flat as this one (the edge-on limit was 0.2). Split at 0.12, its own
+    # ellipse identifies marker 3 (rectified as before: the image's measure, FLAT_MINOR_RATIO, is not needed here).
     found = {m.marker_id: m for m in _lateral(10901).markers}
     assert 3 in found, sorted(found)
     (_c, (d1, d2), _a) = found[3].ring_ellipse
