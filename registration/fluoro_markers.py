@@ -317,7 +317,8 @@ WIRE_HYSTERESIS = 0.5
 # field at 0.25, 29 at 0.2). Matched in the image's own measure (FLAT_MINOR_RATIO), the lateral views of study seeds
 # 10400-11800 (16 seeds, AP+lateral) identify 19 markers at 0.2, 21 with that measure alone, 26 with it at 0.15, 28 at
 # 0.12 (22 at 0.12 without it) and no more at 0.1 or 0.07; none wrongly. Their random and inlet/outlet pairs: 103 ->
-# 106 and 109 -> 109, the one wrong identity among them unchanged.
+# 106 and 109 -> 109, the one wrong identity among them unchanged (counted with the measure applied below 0.5; the
+# rings it identified there lie under 0.3, its limit now).
 EDGE_ON_MINOR_RATIO = 0.12
 # A ring flatter than this whose rectified BBs match no marker is matched again with each difference measured as the
 # image shows it: the stretched axis shrunk back by the ellipse's minor over major (identify's ``metric``). Stretched
