@@ -2,7 +2,8 @@
 
 Input is a log-attenuation image (rows, columns): larger = more attenuation.
 A white top-hat removes anatomy; an opening separates the BBs (discs of
-10-25 px) from the thin wire (4-6 px wide). Each ring is a large thin
+10-25 px) from the thin wire (4-6 px wide); a blob that is no disc is split into the
+touching BB shadows it may be made of (:mod:`.blob_split`). Each ring is a large thin
 connected component fitted with an ellipse; the BBs inside it are rectified
 into the marker plane through the ellipse (circle of 24 mm) and matched with
 :func:`drillnav.registration.markers.identify`. A ring that touches the image
@@ -22,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .carm import REFERENCE_PIXEL_MM, CArmView
+from .blob_split import split_touching
 from .markers import MarkerNotIdentified, MarkerSet, identify
 from .ring_split import ellipse_distance, split_rings
 
@@ -33,7 +35,8 @@ __all__ = ["DetectedBB", "DetectedMarker", "RejectedRing", "FluoroDetections", "
 # truth at most 1.2). A blob longer than that is a BB merged with a neighbour's shadow, a K-wire's or a clamp's, or
 # cut by the field's edge: all 23 blobs there whose centre lay 1.5-5.7 px off the BB's (ratio 1.21-3.12). Its
 # centroid does not place the BB: it still counts for identifying its marker, and poses it only where too few others
-# would (:data:`.marker_pose.MIN_PLACING_BBS`).
+# would (:data:`.marker_pose.MIN_PLACING_BBS`). Such a blob is first split where it is made of touching domes, two
+# BBs' shadows (:func:`.blob_split.split_touching`); each piece is measured again.
 MAX_BB_ELONGATION = 1.2
 
 
@@ -118,7 +121,8 @@ class FluoroDetections:
 
 def _blobs(bb_image: NDArray[np.float32], threshold: float) -> list[tuple[NDArray[np.float64], float, float]]:
     """[(centre (2,) px, diameter px, elongation)]: the BB-like blobs over ``threshold``, centred on their weight;
-    elongation: the ratio of the principal axes of the half-maximum footprint."""
+    elongation: the ratio of the principal axes of the half-maximum footprint. A blob that is no disc is split into
+    the touching BB shadows it may be made of (:func:`.blob_split.split_touching`)."""
     mask = (bb_image > threshold).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     out = []
@@ -126,16 +130,30 @@ def _blobs(bb_image: NDArray[np.float32], threshold: float) -> list[tuple[NDArra
         x, y, w, h, area = stats[i]
         if area < 12 or w > 60 or h > 60:
             continue
-        win = bb_image[y : y + h, x : x + w] * (labels[y : y + h, x : x + w] == i)
-        peak = float(win.max())
-        # Diameter from the half-maximum footprint: a sphere's chord profile falls to half at 0.866 r.
-        half = np.count_nonzero(win > 0.5 * peak)
-        d_half = 2.0 * np.sqrt(half / np.pi) / 0.866
-        yy, xx = np.mgrid[y : y + h, x : x + w]
-        wsum = win.sum()
-        centre = np.array([(xx * win).sum() / wsum, (yy * win).sum() / wsum])
-        out.append((centre, d_half, _elongation(xx[win > 0.5 * peak] - centre[0], yy[win > 0.5 * peak] - centre[1])))
+        values = bb_image[y : y + h, x : x + w]
+        own = labels[y : y + h, x : x + w] == i
+        blob = _blob(values, own, x, y)
+        if blob[2] > MAX_BB_ELONGATION:
+            pieces = split_touching(values, own, threshold=threshold)
+            if len(pieces) > 1:
+                out += [_blob(values, piece, x, y) for piece in pieces]
+                continue
+        out.append(blob)
     return out
+
+
+def _blob(values: NDArray[np.float32], own: NDArray[np.bool_], x: int, y: int) -> tuple[NDArray[np.float64], float, float]:
+    """(centre (2,) px, diameter px, elongation) of the pixels ``own`` (H, W) of a window ``values`` (H, W) whose
+    top-left pixel is (``x``, ``y``)."""
+    win = values * own
+    peak = float(win.max())
+    # Diameter from the half-maximum footprint: a sphere's chord profile falls to half at 0.866 r.
+    half = np.count_nonzero(win > 0.5 * peak)
+    d_half = 2.0 * np.sqrt(half / np.pi) / 0.866
+    yy, xx = np.mgrid[y : y + win.shape[0], x : x + win.shape[1]]
+    wsum = win.sum()
+    centre = np.array([(xx * win).sum() / wsum, (yy * win).sum() / wsum])
+    return centre, d_half, _elongation(xx[win > 0.5 * peak] - centre[0], yy[win > 0.5 * peak] - centre[1])
 
 
 def _elongation(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> float:
@@ -510,17 +528,21 @@ def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float,
                 ident, diam_mm = candidate, sizes_mm
         if ident is not None:
             break
-    if ident is None and last_error is None and len(plane) >= 4:
-        # No blob where the central BB belongs (dense bone, a K-wire or the dose hid it): the ring's centre stands
-        # in for it (weak perspective: within a fraction of a mm in the plane at these tilts), the smallest blob
-        # is one of the code's 2.0 mm BBs, and the central BB is the pattern's one missing BB.
+    if ident is None and len(plane) >= 4:
+        # No blob where the central BB belongs (dense bone, a K-wire or the dose hid it), or none of the small blobs
+        # near the centre, each taken for it, gave a match: the ring's centre stands in for it (weak perspective:
+        # within a fraction of a mm in the plane at these tilts), the smallest blob is one of the code's 2.0 mm BBs,
+        # and the central BB is the pattern's one missing BB. After the blobs near the centre failed, the lateral
+        # views of the study's 16 seeds (below, EDGE_ON_MINOR_RATIO) identify 2 markers more, none wrongly; their
+        # random and inlet/outlet pairs identify the same.
         sizes_mm = diam_px * (2.0 / diam_px.min())
         try:
-            ident, diam_mm = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm, metric=metric), sizes_mm
+            centred = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm, metric=metric)
         except MarkerNotIdentified as exc:
-            last_error = exc
-        if ident is not None and np.any(ident.bb_index == 0):
-            ident, last_error = None, None  # a blob taken for the central BB after all: not the case this is for
+            last_error = last_error or exc
+        else:
+            if not np.any(centred.bb_index == 0):  # a blob taken for the central BB after all: not the case this is for
+                ident, diam_mm = centred, sizes_mm
     return ident, diam_mm, last_error
 
 
