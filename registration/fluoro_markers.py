@@ -534,7 +534,8 @@ def _identify_ring(plane, diam_px, marker_set: MarkerSet, *, max_cost_mm: float,
         # within a fraction of a mm in the plane at these tilts), the smallest blob is one of the code's 2.0 mm BBs,
         # and the central BB is the pattern's one missing BB. After the blobs near the centre failed, the lateral
         # views of the study's 16 seeds (below, EDGE_ON_MINOR_RATIO) identify 2 markers more, none wrongly; their
-        # random and inlet/outlet pairs identify the same.
+        # random and inlet/outlet pairs identify the same (measured before touching blobs were split, which
+        # identifies both of those markers too).
         sizes_mm = diam_px * (2.0 / diam_px.min())
         try:
             centred = identify(plane, sizes_mm, marker_set, max_cost_mm=max_cost_mm, metric=metric)
