@@ -3,7 +3,8 @@
 A marker steep to the beam crowds its BBs across the ring's ellipse: two shadows touch and make one blob, whose
 centroid places neither BB, and the pattern, one BB short and one displaced, matched no marker. On the
 operating-room twin (seed 11300, AP+lateral, every degradation, the real CT) the lateral view's markers 42 (70 deg
-to the beam: its central BB touching a 3.5 mm one) and 22 were not identified; split, both are.
+to the beam: its central BB touching a 3.5 mm one) and 22 were not identified; split, both are. A ring nearly
+edge-on whose shadows still merge is taken for its marker only on five BBs.
 """
 
 import sys
@@ -83,3 +84,17 @@ def test_a_lateral_views_markers_whose_bbs_touch_are_identified():
     for i in (0, 5):
         assert np.linalg.norm(paired[i].center_px - truth[i]) < 1.0
         assert paired[i].places
+
+
+def test_a_ring_nearly_edge_on_with_four_bbs_paired_is_not_taken_for_its_marker():
+    # Seed 10400's random view p-83s+18: marker 22's ring, 0.12 as wide as long (83 deg to the beam), matched its
+    # marker on four BBs, two of them 4.9 px off their BBs (merged shadows); posed on them, the marker lay 40 mm off and
+    # the single-view registration 12.4 mm (flagged). Under FEW_BB_EDGE_ON_RATIO (0.15) a ring needs five BBs paired.
+    scene, k = operating_room_scene(10400, "random")
+    image_rng = np.random.default_rng([10400, k, 1])
+    images = {name: render_fluoro(scene, name, image_rng) for name in scene.views}
+    found = detect_in_view(images["p-83s+18"], scene.views["p-83s+18"], scene.marker_set)
+    ids = {m.marker_id for m in found.markers}
+    assert 41 in ids and 22 not in ids, sorted(ids)
+    centre = scene.views["p-83s+18"].project(scene.carm_from_marker[22][:3, 3][None])[0]
+    assert any(r.reason.startswith("marker seen edge-on") and np.linalg.norm(r.center_px - centre) < 20 for r in found.rejected)
