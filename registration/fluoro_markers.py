@@ -350,7 +350,8 @@ FLAT_MINOR_RATIO = 0.3
 # one line across the ellipse, merged shadows displace them, and the pose they give can lie tens of mm off (seed
 # 10400's random view p-83s+18: a ring at 0.12 on four BBs, two 4.9 px off, posed 40 mm off, the registration 12.4 mm
 # off). Over 48 study seeds (M = 5) this moved 5 registrations: 3 nearer the truth (12.4 -> 2.41 mm, 1.57 -> 0.33 mm),
-# 2 farther (1.31 -> 1.41 and 1.10 -> 1.24 mm, within their bounds); no refusal changed.
+# 2 farther (1.31 -> 1.41 and 1.10 -> 1.24 mm, within their bounds), no refusal changed; with M = 3 and 4 on the
+# three seeds of docs/accuracy.md, AP+lateral single views refused 84 -> 88 over all configurations.
 FEW_BB_EDGE_ON_RATIO = 0.15
 _OVERLAP = "rings overlap in projection"
 _EDGE_ON = "marker seen edge-on (ring ellipse too flat to identify)"
