@@ -413,7 +413,8 @@ def _split_overlap(pts, *, blobs, **ring) -> list:
     Where the ellipses overlap, one ring's BBs lie inside another: a ring that identifies no marker among every
     blob inside it is tried again without the BBs the piece's identified markers matched.
     """
-    rings = split_rings(pts, min_major_px=ring["min_ring_px"], max_major_px=ring["max_ring_px"], wire_px=ring["wire_px"], min_minor_ratio=EDGE_ON_MINOR_RATIO)
+    rings = split_rings(pts, min_major_px=ring["min_ring_px"], max_major_px=ring["max_ring_px"], wire_px=ring["wire_px"], min_minor_ratio=EDGE_ON_MINOR_RATIO,
+                        shape=ring["shape"])
     found: list = [None] * len(rings)
     for _ in range(2):
         taken = {blob_key(b.center_px) for m in found if isinstance(m, DetectedMarker) for b, i in zip(m.bbs, m.bb_index) if i >= 0}

@@ -6,8 +6,9 @@ form one connected piece, too large to be one ring. Such a piece is split by
 RANSAC: ellipses through five of its pixels (drawn near one another, so that
 they tend to lie on one ring) are scored by how much of their circumference
 the piece's pixels follow; the best is refitted to the pixels along it and
-taken when the wire follows most of its circumference; its pixels leave the
-piece, and the next ring is looked for among the rest.
+taken when the wire follows most of its circumference (of its part inside the
+field, for a ring the image's edge cuts); its pixels leave the piece, and the
+next ring is looked for among the rest.
 
 Pure math: numpy and OpenCV's ellipse fit.
 """
@@ -18,13 +19,20 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["split_rings", "ellipse_distance"]
+__all__ = ["split_rings", "ellipse_distance", "sectors_in_field"]
 
 # Of 36 sectors of an ellipse's circumference (10 deg each about its centre, in the circle's own angle), those the
 # piece's pixels must reach for it to be a ring: a ring crossed by another ring, a K-wire or a clamp's jaw still
 # shows most of its wire; a chance ellipse through parts of two rings follows them over much less.
 MIN_SECTORS = 27
 SECTORS = 36
+# A ring cut by the field's edge is judged on the sectors whose arc lies in the field: the piece's pixels must reach
+# MIN_SECTORS / SECTORS of those, and at least this many must lie in the field (half the ring: the detector keeps a
+# lone ring cut by the edge only when its arc spans half a turn). Two rings crossing at the top of a lateral view,
+# each cut by the edge (seed 11000's AP+lateral pair, markers 0 and 22, 65-68 deg to the beam, all their BBs in the
+# field), follow 20 of their 23 sectors in the field and 26 of 24 (a wire's pixels at the edge reach one more): at 27
+# of 36 neither was split out, and the piece identified no marker.
+MIN_SECTORS_IN_FIELD = 18
 # Draws per ring looked for; the five pixels of a draw are taken within a ring's largest extent of the first one.
 DRAWS = 500
 # The grid (px) the fits run on: a wire 4-6 px wide holds several of its pixels per step along it.
@@ -55,7 +63,8 @@ def _sectors(theta: NDArray[np.float64]) -> int:
 
 
 def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_major_px: float, wire_px: float,
-                min_minor_ratio: float = 0.2, max_rings: int = 4, seed: int = 0) -> tuple[NDArray[np.float32], ...]:
+                min_minor_ratio: float = 0.2, max_rings: int = 4, seed: int = 0, shape: tuple[int, int] | None = None
+                ) -> tuple[NDArray[np.float32], ...]:
     """The rings (each its pixels (K, 2) float32, column, row) that one piece of wire ``points_px`` (N, 2) is made of.
 
     A ring is an ellipse of major axis ``min_major_px``-``max_major_px`` whose minor axis is at least
@@ -64,6 +73,9 @@ def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_majo
     piece's pixels follow over MIN_SECTORS of SECTORS sectors within ``wire_px`` (the wire's width). Its pixels are
     those within ``wire_px`` of it; a pixel where two rings cross goes to both. Deterministic for one ``seed``.
     Empty when no ring is found, as for a piece that is no ring at all.
+
+    ``shape``: the image's (rows, columns); a ring cut by its edge then needs MIN_SECTORS of SECTORS of the sectors
+    whose arc lies in the field, and at least ``MIN_SECTORS_IN_FIELD`` of those (None: every sector counts).
     """
     pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
     if len(pts) < 10:
@@ -77,7 +89,7 @@ def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_majo
         pool = grid[left]
         if len(pool) < SECTORS:
             break
-        best = _best_draw(pool, rng, min_major_px=min_major_px, max_major_px=max_major_px, min_minor_ratio=min_minor_ratio, tol=tol)
+        best = _best_draw(pool, rng, min_major_px=min_major_px, max_major_px=max_major_px, min_minor_ratio=min_minor_ratio, tol=tol, shape=shape)
         if best is None:
             break
         ellipse = best
@@ -88,7 +100,7 @@ def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_majo
                 break
             ellipse = cv2.fitEllipse(pool[near].astype(np.float32).reshape(-1, 1, 2))
         d, theta = ellipse_distance(pool, ellipse)
-        if _sectors(theta[d < tol]) < MIN_SECTORS or not _shape_ok(ellipse, min_major_px, max_major_px, min_minor_ratio):
+        if not _follows(_sectors(theta[d < tol]), ellipse, shape) or not _shape_ok(ellipse, min_major_px, max_major_px, min_minor_ratio):
             break
         rings.append(ellipse)
         # The wire's far side too: a thick wire would otherwise give the same ring again from its outer pixels.
@@ -101,6 +113,28 @@ def split_rings(points_px: NDArray[np.float32], *, min_major_px: float, max_majo
     return tuple(out)
 
 
+def sectors_in_field(ellipse, shape: tuple[int, int], *, margin_px: float = 2.0) -> int:
+    """How many of the SECTORS sectors of ``ellipse`` (as cv2.fitEllipse gives it) have their arc's middle inside an
+    image of ``shape`` (rows, columns), ``margin_px`` from its edge."""
+    (cx, cy), (d1, d2), angle = ellipse
+    a = np.radians(angle)
+    t = -np.pi + (np.arange(SECTORS) + 0.5) * (2.0 * np.pi / SECTORS)
+    u, v = d1 / 2.0 * np.cos(t), d2 / 2.0 * np.sin(t)
+    x = cx + u * np.cos(a) - v * np.sin(a)
+    y = cy + u * np.sin(a) + v * np.cos(a)
+    rows, cols = shape
+    return int(np.count_nonzero((x >= margin_px) & (x <= cols - 1 - margin_px) & (y >= margin_px) & (y <= rows - 1 - margin_px)))
+
+
+def _follows(covered: int, ellipse, shape: tuple[int, int] | None) -> bool:
+    """Whether the wire covering ``covered`` sectors of ``ellipse`` follows it as a ring's (:data:`MIN_SECTORS`), counting
+    only the sectors in the field of an image of ``shape`` (None: all)."""
+    if shape is None:
+        return covered >= MIN_SECTORS
+    visible = sectors_in_field(ellipse, shape)
+    return visible >= MIN_SECTORS_IN_FIELD and covered * SECTORS >= MIN_SECTORS * visible
+
+
 def _shape_ok(ellipse, min_major_px: float, max_major_px: float, min_minor_ratio: float) -> bool:
     (cx, cy), (d1, d2), _angle = ellipse
     if not np.all(np.isfinite([cx, cy, d1, d2])):
@@ -110,8 +144,10 @@ def _shape_ok(ellipse, min_major_px: float, max_major_px: float, min_minor_ratio
 
 
 def _best_draw(pool: NDArray[np.float64], rng: np.random.Generator, *, min_major_px: float, max_major_px: float,
-               min_minor_ratio: float, tol: float):
-    """The drawn ellipse whose circumference ``pool``'s pixels follow over most sectors (most pixels on a tie), or None."""
+               min_minor_ratio: float, tol: float, shape: tuple[int, int] | None = None):
+    """The drawn ellipse whose circumference ``pool``'s pixels follow over most sectors (most pixels on a tie), or None.
+    With ``shape`` (rows, columns) the share of its sectors in the field that they follow counts, among ellipses with
+    at least :data:`MIN_SECTORS_IN_FIELD` there: a ring cut by the edge is no worse a ring for it."""
     best, best_score = None, -1
     for _ in range(DRAWS):
         first = pool[rng.integers(len(pool))]
@@ -125,9 +161,12 @@ def _best_draw(pool: NDArray[np.float64], rng: np.random.Generator, *, min_major
             continue
         if not _shape_ok(ellipse, min_major_px, max_major_px, min_minor_ratio):
             continue
+        visible = SECTORS if shape is None else sectors_in_field(ellipse, shape)
+        if visible < MIN_SECTORS_IN_FIELD:
+            continue
         d, theta = ellipse_distance(pool, ellipse)
         on = d < tol
-        score = _sectors(theta[on]) * len(pool) + int(on.sum())
+        score = _sectors(theta[on]) * SECTORS / visible * len(pool) + int(on.sum())
         if score > best_score:
             best, best_score = ellipse, score
     return best

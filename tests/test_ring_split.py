@@ -51,6 +51,38 @@ def test_three_rings_in_a_chain_and_a_ring_cut_by_a_clamp():
     assert _matches(rings, truth)
 
 
+def _in_field(pts, shape):
+    """The pixels (N, 2) of ``pts`` inside an image of ``shape`` (rows, columns)."""
+    keep = (pts[:, 0] >= 0) & (pts[:, 1] >= 0) & (pts[:, 0] < shape[1]) & (pts[:, 1] < shape[0])
+    return pts[keep]
+
+
+def _centred(found, truth, *, tol_px=5.0):
+    """Whether each true ellipse has a found ring whose own ellipse (fitted to its pixels) is centred within ``tol_px``."""
+    centres = [np.asarray(cv2.fitEllipse(r)[0]) for r in found]
+    return all(any(np.linalg.norm(c - np.asarray(t[0])) < tol_px for c in centres) for t in truth)
+
+
+def test_two_crossing_rings_cut_by_the_fields_edge_are_split_when_the_field_is_known():
+    # Two rings crossing at the top of the field, each cut by its edge (22 and 21 of their 36 sectors in the field).
+    # Counted over all 36 sectors, ellipses that follow 27 of them run through parts of both wires, about 50 px off the
+    # rings' centres; counted over those in the field, each ring's own ellipse is split out.
+    truth = [((300.0, 40.0), (116.0, 280.0), 153.0), ((390.0, 30.0), (117.0, 305.0), 142.0)]
+    pts = _in_field(_wire([((cx, cy + 100.0), d, a) for (cx, cy), d, a in truth]) - np.float32([0.0, 100.0]), SHAPE)
+    blind = split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8)
+    assert not _centred(blind, truth)
+    rings = split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8, shape=SHAPE)
+    assert len(rings) == 2
+    assert _centred(rings, truth) and _matches(rings, truth)
+
+
+def test_an_arc_with_less_than_half_its_ring_in_the_field_is_no_ring():
+    # A ring centred 20 px above the field (its major axis across the edge): 14 of its 36 sectors lie in the field.
+    pts = _in_field(_wire([((300.0, 180.0), (116.0, 280.0), 90.0)]) - np.float32([0.0, 200.0]), SHAPE)
+    assert len(pts) > 100
+    assert split_rings(pts, min_major_px=33.0, max_major_px=380.0, wire_px=5.8, shape=SHAPE) == ()
+
+
 def test_a_piece_that_is_no_ring_gives_none():
     img = np.zeros(SHAPE, np.uint8)
     cv2.line(img, (20, 30), (560, 500), 1, 6)  # a K-wire
@@ -104,6 +136,14 @@ def test_two_pairs_of_crossing_rings_each_no_larger_than_a_ring_are_split():
     # and the view identified none. A piece whose pixels do not follow its one ellipse is now split too.
     ids = sorted(m.marker_id for m in _lateral(12202).markers)
     assert {9, 21, 38} <= set(ids), ids
+
+
+def test_two_crossing_rings_cut_by_the_top_edge_identify_their_markers_in_a_lateral_view():
+    # Seed 11000's lateral view: markers 0 and 22 lie 65-68 deg to the beam near the top of the field, all their BBs in
+    # it, their rings crossing and each cut by the edge. One piece, whose 14 BBs matched no marker; split counting
+    # only the sectors in the field, each ring identifies its marker.
+    ids = sorted(m.marker_id for m in _lateral(11000).markers)
+    assert {0, 22} <= set(ids), ids
 
 
 def test_a_ring_81_deg_to_the_beam_crossed_by_a_neighbour_is_identified_in_a_lateral_view():
