@@ -429,10 +429,25 @@ def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations:
             extra.append((view, *placing_claim(*found, non_disc[k])))
     if not extra:
         return None
+    every = list(observations) + extra
     try:
-        return _solve_one(marker_id, list(observations) + extra, max_residual_px)
+        return _solve_one(marker_id, every, float(np.hypot(max_residual_px, intensifier_allowance_px(every))))
     except ValueError:
         return None
+
+
+def intensifier_allowance_px(observations) -> float:
+    """The largest 1-sigma shift (px) an image intensifier's uncorrected distortion can put on a marker's BBs in one of
+    ``observations``' views (``CArmView.distortion_sigma_px`` at the field's corner, growing with the cube of the
+    radius: :func:`.carm.intensifier_shift_px`); 0 on flat panels. One marker's fit over two such views cannot take
+    up both views' shifts at once: what is left of them is in its residual."""
+    out = 0.0
+    for view, _design, img in observations:
+        sigma = float(getattr(view, "distortion_sigma_px", 0.0))
+        if sigma > 0 and len(img):
+            r = np.linalg.norm(np.asarray(img, dtype=np.float64).mean(axis=0) - view.center_px) / view.corner_radius_px
+            out = max(out, sigma * min(r, 1.0) ** 3)
+    return out
 
 
 # A marker posed in one view claims its BBs in another view sliding along the image of the first view's beam,
