@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .carm import REFERENCE_PIXEL_MM, CArmView
+from .carm import REFERENCE_PIXEL_MM, CArmView, intensifier_shift_px
 from .fluoro_markers import FluoroDetections, blob_key
 from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
@@ -443,16 +443,17 @@ def intensifier_allowance_px(observations) -> float:
     up both views' shifts at once: what is left of them is in its residual."""
     out = 0.0
     for view, _design, img in observations:
-        sigma = float(getattr(view, "distortion_sigma_px", 0.0))
-        if sigma > 0 and len(img):
-            r = np.linalg.norm(np.asarray(img, dtype=np.float64).mean(axis=0) - view.center_px) / view.corner_radius_px
-            out = max(out, sigma * min(r, 1.0) ** 3)
+        if view.distortion_sigma_px > 0 and len(img):
+            centre_px = np.asarray(img, dtype=np.float64).mean(axis=0)
+            shift = intensifier_shift_px(centre_px, view.center_px, view.corner_radius_px, np.array([view.distortion_sigma_px, 0.0]))
+            out = max(out, float(np.linalg.norm(shift)))
     return out
 
 
 # A marker posed in one view claims its BBs in another view sliding along the image of the first view's beam,
 # this far in depth (either sense) and this far across it, asking then for this many BBs on one shift; the marker
-# is then solved over both views, and kept so only when that fit converges (its RMS within ``max_residual_px``).
+# is then solved over both views, and kept so only when that fit converges (its RMS within ``max_residual_px``
+# combined with what an intensifier's distortion leaves: :func:`intensifier_allowance_px`).
 CROSS_VIEW_SLIDE_MM = 25.0
 CROSS_VIEW_ACROSS_PX = 20.0
 CROSS_VIEW_SLID_MIN_BBS = 4
