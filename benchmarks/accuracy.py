@@ -565,6 +565,8 @@ def main() -> None:
                     "horizontal field of view stays 76 deg): the product at a resolution its twin does not default to")
     ap.add_argument("--detector", default=None, help="the C-arm's detector, ROWSxCOLUMNS@PIXEL_MM (default the reference's "
                     "976x976@0.304; e.g. 488x488@0.608 for 2x2 binning), its source distances unchanged")
+    ap.add_argument("--marker-tilt", default=None, help="with surgeon_markers, the markers' tilt from the AP beam, LOW,HIGH deg (default "
+                    "the twin's 10,40; e.g. 0,10 for markers stuck flat on the skin, edge-on in a lateral view)")
     args = ap.parse_args()
     carm = None
     if args.detector is not None:
@@ -590,6 +592,12 @@ def main() -> None:
             degradations = dataclasses.replace(degradations, ct_anatomy=False)
     else:
         degradations = Degradations.parse(args.degradations)
+    if args.marker_tilt is not None:
+        try:
+            lo, hi = (float(v) for v in args.marker_tilt.split(","))
+            degradations = dataclasses.replace(degradations, marker_tilt_deg=(lo, hi))
+        except ValueError as exc:
+            ap.error(f"--marker-tilt must be LOW,HIGH deg with 0 <= LOW <= HIGH < 80, got {args.marker_tilt!r} ({exc})")
     needs_ct = degradations.ct_anatomy or args.per_degradation
     patient = load_patient(args.ct) if needs_ct and (degradations.ct_anatomy or args.ct.exists()) else None
     t0 = time.perf_counter()
@@ -611,7 +619,7 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None:  # the docs table is the twin's own devices
+    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None:  # the docs table is the twin's own devices
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
@@ -631,7 +639,7 @@ def main() -> None:
         if s["n"]:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
-           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", summary=summary,
+           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", marker_tilt_deg=list(degradations.marker_tilt_deg), summary=summary,
            per_degradation=per_deg)
 
 
