@@ -28,7 +28,8 @@ from .markers import MarkerSet
 from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
 
-__all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video", "corroborate_loose", "LOOSE_MIN_CLAIMED_BBS"]
+__all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video", "claim_from_solution", "corroborate_loose",
+           "LOOSE_MIN_CLAIMED_BBS"]
 
 # After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
 # the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
@@ -121,12 +122,7 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     identified, or when the constellation does not fit fluoroscopy within ``max_fit_px`` (RMS).
     """
     vids = video.by_id()
-    views, non_disc = {}, {}
-    for p in marker_poses:
-        for view, blobs in p.view_blobs:
-            views.setdefault(id(view), (view, blobs))
-        for view, centres in p.non_disc_blobs:
-            non_disc.setdefault(id(view), {blob_key(c) for c in centres})
+    views, non_disc = _view_blobs(marker_poses)
     by_id = {p.marker_id: p for p in marker_poses}
     in_set = set(marker_set.ids)
     anchors = {i: p.observations for i, p in by_id.items() if i in vids and (p.observations or p.solution_observations)}
@@ -174,6 +170,51 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
                               observations=tuple(extra), view_blobs=next(iter(by_id.values())).view_blobs,
                               non_disc_blobs=next(iter(by_id.values())).non_disc_blobs))
     return tuple(out)
+
+
+def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: dict[int, NDArray[np.float64]], marker_set: MarkerSet, *,
+                        min_bbs: int = 3) -> dict[int, tuple]:
+    """{marker id: its observations with the BBs claimed}: the free blobs of the views where a marker of ``carm_from_marker``
+    ({id: (4, 4)}, a joint solve's poses) has no observations, claimed at the BBs those poses predict; only the markers
+    that gained a view.
+
+    The first claims (:func:`claim_from_video`) predict through each tag's pose in the camera, whose tilt is the
+    least certain part of it: a marker edge-on in a lateral view, its normal 3.3 deg off that way, spreads its
+    predicted BBs 7 px along the line they lie on (twin seed 3000, AP + lateral, markers stuck flat), more than a
+    common shift and ``TOL_PX`` take up. Refined by the other views' BBs and the tag corners together, the same
+    marker's pose is within about a degree, and its BBs are where the claim looks for them. Free blobs: those no
+    marker identified or claimed in that view; claimed blobs that are no disc are left out as
+    :func:`claim_from_video` leaves them (:func:`.marker_pose.placing_claim`).
+    """
+    by_id = {p.marker_id: p for p in marker_poses}
+    views, non_disc = _view_blobs(marker_poses)
+    if not views:
+        return {}
+    taken: dict[int, set] = {}
+    for p in marker_poses:
+        for o in p.observations:
+            taken.setdefault(id(o[0]), set()).update(blob_key(c) for c in np.asarray(o[2]).reshape(-1, 2))
+    free_views = {k: (view, np.array([c for c in np.asarray(b, dtype=np.float64).reshape(-1, 2) if blob_key(c) not in taken.get(k, set())]).reshape(-1, 2))
+                  for k, (view, b) in views.items()}
+    poses = {i: t for i, t in carm_from_marker.items() if i in by_id}
+    claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs)
+    out = {}
+    for i, per in sorted(claims.items()):
+        extra = tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per)
+        out[i] = tuple(by_id[i].observations) + extra
+    return out
+
+
+def _view_blobs(marker_poses: tuple[MarkerPose, ...]) -> tuple[dict, dict]:
+    """The views' blobs that no identified marker claimed, {id(view): (view, (K, 2) px)}, and the keys of those that are
+    no disc, {id(view): {blob key}} (:attr:`.marker_pose.MarkerPose.view_blobs`, ``non_disc_blobs``)."""
+    views, non_disc = {}, {}
+    for p in marker_poses:
+        for view, blobs in p.view_blobs:
+            views.setdefault(id(view), (view, blobs))
+        for view, centres in p.non_disc_blobs:
+            non_disc.setdefault(id(view), {blob_key(c) for c in centres})
+    return views, non_disc
 
 
 # A loose hypothesis (a ring that identified no marker, matched against one marker alone) stands when the camera's

@@ -37,7 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
-from .video_claims import claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors
+from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors
 from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -200,6 +200,14 @@ def register_video_to_fluoro(
                      fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
                                   if i not in joinable and p.converged and p.mirror_carm_from_marker is None and not p.needs_camera})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
+        # The claims predicted each marker through its tag's pose in the camera; the solve's poses, refined by every
+        # BB and corner, may find the BBs of a marker in a view where those missed them (edge-on): solved again with them.
+        again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set)
+        if again:
+            for i, observations in again.items():
+                every[i] = replace(every[i], observations=observations)
+            solve["observations"] = {i: every[i].observations for i in joinable}
+            sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
