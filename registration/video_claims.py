@@ -174,9 +174,9 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
 
 def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: dict[int, NDArray[np.float64]], marker_set: MarkerSet, *,
                         min_bbs: int = 3) -> dict[int, tuple]:
-    """{marker id: its observations with the BBs claimed}: the free blobs of the views where a marker of ``carm_from_marker``
-    ({id: (4, 4)}, a joint solve's poses) has no observations, claimed at the BBs those poses predict; only the markers
-    that gained a view.
+    """{marker id: ((view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...)}: the free blobs of the views where
+    a marker of ``carm_from_marker`` ({id: (4, 4)}, a joint solve's poses) has no observations, claimed at the BBs those
+    poses predict; only the markers that gained a view, and only the observations they gained.
 
     The first claims (:func:`claim_from_video`) predict through each tag's pose in the camera, whose tilt is the
     least certain part of it: a marker edge-on in a lateral view, its normal 3.3 deg off that way, spreads its
@@ -198,11 +198,7 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
                   for k, (view, b) in views.items()}
     poses = {i: t for i, t in carm_from_marker.items() if i in by_id}
     claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs)
-    out = {}
-    for i, per in sorted(claims.items()):
-        extra = tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per)
-        out[i] = tuple(by_id[i].observations) + extra
-    return out
+    return {i: tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per) for i, per in sorted(claims.items())}
 
 
 def _view_blobs(marker_poses: tuple[MarkerPose, ...]) -> tuple[dict, dict]:
