@@ -44,6 +44,11 @@ TOL_PX = 3.5
 # SLID_MIN_BBS BBs on one shift when the shift goes past SEARCH_PX.
 SLIDE_MM = 25.0
 SLID_MIN_BBS = 4
+# After the joint solve, a marker whose BBs a view still does not show where its pose predicts them is looked for at
+# tilts of that pose up to this, in these steps, about either axis in its plane, on at least TILTED_MIN_BBS BBs.
+TILT_SEARCH_DEG = 15.0
+TILT_STEP_DEG = 2.5
+TILTED_MIN_BBS = 4
 
 
 def drill_from_marker(camera_from_tag: NDArray[np.float64], tag_center_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -198,7 +203,42 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
                   for k, (view, b) in views.items()}
     poses = {i: t for i, t in carm_from_marker.items() if i in by_id}
     claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs)
+    _tilted_claims(claims, views=free_views, by_id=by_id, poses=poses, marker_set=marker_set)
     return {i: tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per) for i, per in sorted(claims.items())}
+
+
+def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, MarkerPose], poses: dict[int, NDArray[np.float64]],
+                   marker_set: MarkerSet) -> None:
+    """Add to ``claims`` ({id: [(view, design (N, 3), blobs (N, 2))]}) the views' free blobs that a marker still without them
+    explains at a tilt of its pose (up to ``TILT_SEARCH_DEG`` about either axis in its plane), at least
+    ``TILTED_MIN_BBS`` of them: the largest count, the smallest tilt on a tie. A marker registered on one face-on view
+    and its tag alone has its tilt from the camera (12.7 deg off on twin seed 11100, markers stuck flat); edge-on in
+    the other view, its BBs then lie across the line its prediction draws."""
+    free = {k: b for k, (_, b) in views.items()}
+    for per in claims.values():
+        for view, _, img in per:
+            k = id(view)
+            taken = np.any(np.all(np.isclose(free[k][:, None, :], np.asarray(img)[None, :, :]), axis=2), axis=1)
+            free[k] = free[k][~taken]
+    steps = np.radians(np.arange(-TILT_SEARCH_DEG, TILT_SEARCH_DEG + 1e-9, TILT_STEP_DEG))
+    tilts = sorted(((a, b) for a in steps for b in steps if a or b), key=lambda t: np.hypot(*t))
+    for i in sorted(poses):
+        have = {id(o[0]) for o in by_id[i].observations} | {id(c[0]) for c in claims.get(i, [])}
+        design = marker_set.by_id(i).bb_centers_mm
+        for k, (view, _) in views.items():
+            if k in have or len(free[k]) < TILTED_MIN_BBS:
+                continue
+            best = None
+            for a, b in tilts:
+                pose = poses[i] @ from_rotvec([a, b, 0.0])
+                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS)
+                if found is not None and (best is None or len(found[0]) > len(best[0])):
+                    best = found
+            if best is None:
+                continue
+            claims.setdefault(i, []).append((view, *best))
+            taken = np.any(np.all(np.isclose(free[k][:, None, :], best[1][None, :, :]), axis=2), axis=1)
+            free[k] = free[k][~taken]
 
 
 def _view_blobs(marker_poses: tuple[MarkerPose, ...]) -> tuple[dict, dict]:

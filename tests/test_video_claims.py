@@ -218,3 +218,24 @@ def test_after_the_solve_an_edge_on_marker_claims_its_lateral_bbs_the_camera_pos
     assert np.linalg.norm(reg.carm_from_marker[42][:3, 3] - true[:3, 3]) < 0.4
     mm, deg = axis_error(scene, reg.carm_from_drill, carm_from_drill)
     assert mm < 0.3 and deg < 0.25
+
+
+def test_a_solved_pose_tilted_by_its_tag_still_claims_its_bbs_at_the_tilt_they_show(monkeypatch):
+    """A marker registered on one view and its tag alone has its tilt from the camera, which can be 10 deg or more off:
+    its BBs in the other view are not where that pose predicts them. The claim tries the pose's tilts about both axes in
+    its plane and takes the one that explains most BBs; without that search nothing is claimed."""
+    from drillnav.registration import video_claims
+    from drillnav.registration.transforms import from_rotvec
+    from drillnav.registration.video_claims import claim_from_solution
+
+    scene, pose, true, lateral_bbs = _ap_observed_marker()
+    lateral = scene.views["lateral"]
+    design = scene.marker_set.by_id(pose.marker_id).bb_centers_mm
+    tilted = true @ from_rotvec(np.radians([7.0, -10.0, 0.0]))
+    got = claim_from_solution((pose,), {pose.marker_id: tilted}, scene.marker_set)
+    (view, obj, img), = got[pose.marker_id]
+    assert view is lateral and len(obj) >= video_claims.TILTED_MIN_BBS
+    index = [int(np.argmin(np.linalg.norm(design - b, axis=1))) for b in obj]
+    assert np.allclose(img, lateral_bbs[index]), "each claimed blob is the image of the BB it is claimed for"
+    monkeypatch.setattr(video_claims, "TILT_SEARCH_DEG", 0.0)
+    assert claim_from_solution((pose,), {pose.marker_id: tilted}, scene.marker_set) == {}
