@@ -29,7 +29,7 @@ from .transforms import apply, from_rotvec, invert, make_transform, to_rotvec
 from .video_markers import VideoDetections
 
 __all__ = ["drill_from_marker", "fit_constellation", "constellation_fits", "claim_from_video", "claim_from_solution", "corroborate_loose",
-           "LOOSE_MIN_CLAIMED_BBS"]
+           "with_claims", "LOOSE_MIN_CLAIMED_BBS"]
 
 # After the constellation fit the prediction is off by the camera's tag pose error (about a millimetre at
 # the marker: ~5 px) and the depth along the beam: a small common shift, well below a neighbour's distance.
@@ -166,9 +166,7 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
     out = []
     for p in marker_poses:
         extra = claims.pop(p.marker_id, [])
-        out.append(replace(p, observations=tuple(p.observations) + tuple(extra), n_views=p.n_views + len(extra),
-                           n_points=p.n_points + sum(len(o[1]) for o in extra),
-                           solution_observations=tuple(tuple(o) + tuple(extra) for o in p.solution_observations)) if extra else p)
+        out.append(with_claims(p, extra) if extra else p)
     for i, extra in sorted(claims.items()):
         out.append(MarkerPose(marker_id=i, carm_from_marker=carm_from_drill @ d_from_m[i], residual_px=float("nan"),
                               n_views=len(extra), n_points=sum(len(o[1]) for o in extra), converged=False,
@@ -217,9 +215,7 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
     free = {k: b for k, (_, b) in views.items()}
     for per in claims.values():
         for view, _, img in per:
-            k = id(view)
-            taken = np.any(np.all(np.isclose(free[k][:, None, :], np.asarray(img)[None, :, :]), axis=2), axis=1)
-            free[k] = free[k][~taken]
+            free[id(view)] = _without(free[id(view)], img)
     steps = np.radians(np.arange(-TILT_SEARCH_DEG, TILT_SEARCH_DEG + 1e-9, TILT_STEP_DEG))
     tilts = sorted(((a, b) for a in steps for b in steps if a or b), key=lambda t: np.hypot(*t))
     for i in sorted(poses):
@@ -237,8 +233,21 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
             if best is None:
                 continue
             claims.setdefault(i, []).append((view, *best))
-            taken = np.any(np.all(np.isclose(free[k][:, None, :], best[1][None, :, :]), axis=2), axis=1)
-            free[k] = free[k][~taken]
+            free[k] = _without(free[k], best[1])
+
+
+def with_claims(pose: MarkerPose, extra) -> MarkerPose:
+    """``pose`` with the observations ``extra`` ((view, design (N, 3) mm, blobs (N, 2) px), ...) claimed in views it had
+    none in, added to its own and to each pairing's (:attr:`.marker_pose.MarkerPose.solution_observations`)."""
+    return replace(pose, observations=tuple(pose.observations) + tuple(extra), n_views=pose.n_views + len(extra),
+                   n_points=pose.n_points + sum(len(o[1]) for o in extra),
+                   solution_observations=tuple(tuple(o) + tuple(extra) for o in pose.solution_observations))
+
+
+def _without(blobs: NDArray[np.float64], taken: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``blobs`` (K, 2) less those in ``taken`` (N, 2)."""
+    gone = np.any(np.all(np.isclose(blobs[:, None, :], np.asarray(taken)[None, :, :]), axis=2), axis=1)
+    return blobs[~gone]
 
 
 def _view_blobs(marker_poses: tuple[MarkerPose, ...]) -> tuple[dict, dict]:
@@ -324,5 +333,4 @@ def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[in
             return claims
         i, k, view, obj, img = best
         claims.setdefault(i, []).append((view, obj, img))
-        taken = np.any(np.all(np.isclose(free[k][:, None, :], img[None, :, :]), axis=2), axis=1)
-        free[k] = free[k][~taken]
+        free[k] = _without(free[k], img)

@@ -37,7 +37,7 @@ from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
-from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors
+from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors, with_claims
 from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -204,8 +204,8 @@ def register_video_to_fluoro(
         # BB and corner, may find the BBs of a marker in a view where those missed them (edge-on): solved again with them.
         again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set)
         if again:
-            every.update({i: _with_claims(every[i], again[i]) for i in again})
-            marker_poses = tuple(_with_claims(p, again[p.marker_id]) if p.marker_id in again else p for p in marker_poses)
+            every.update({i: with_claims(every[i], again[i]) for i in again})
+            marker_poses = tuple(with_claims(p, again[p.marker_id]) if p.marker_id in again else p for p in marker_poses)
             solve["observations"] = {i: every[i].observations for i in joinable}
             sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
         alternative = None
@@ -233,13 +233,6 @@ def register_video_to_fluoro(
         carm_from_marker=carm_from_marker,
         **extra,
     )
-
-
-def _with_claims(pose: MarkerPose, extra: tuple) -> MarkerPose:
-    """``pose`` with the observations ``extra`` ((view, design (N, 3) mm, blobs (N, 2) px), ...) claimed in views it had none in."""
-    return replace(pose, observations=tuple(pose.observations) + tuple(extra), n_views=pose.n_views + len(extra),
-                   n_points=pose.n_points + sum(len(o[1]) for o in extra),
-                   solution_observations=tuple(tuple(o) + tuple(extra) for o in pose.solution_observations))
 
 
 def _bb_count(pose: MarkerPose) -> int:
