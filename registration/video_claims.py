@@ -45,7 +45,8 @@ TOL_PX = 3.5
 SLIDE_MM = 25.0
 SLID_MIN_BBS = 4
 # After the joint solve, a marker whose BBs a view still does not show where its pose predicts them is looked for at
-# tilts of that pose up to this, in these steps, about either axis in its plane, on at least TILTED_MIN_BBS BBs.
+# tilts of that pose up to this, in these steps, about either axis in its plane, on at least TILTED_MIN_BBS BBs; a marker
+# observed in one view only slides SLIDE_MM along that view's beam's image as well.
 TILT_SEARCH_DEG = 15.0
 TILT_STEP_DEG = 2.5
 TILTED_MIN_BBS = 4
@@ -211,13 +212,18 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
     explains at a tilt of its pose (up to ``TILT_SEARCH_DEG`` about either axis in its plane), at least
     ``TILTED_MIN_BBS`` of them: the largest count, the smallest tilt on a tie. A marker registered on one face-on view
     and its tag alone has its tilt from the camera (12.7 deg off on twin seed 11100, markers stuck flat); edge-on in
-    the other view, its BBs then lie across the line its prediction draws."""
+    the other view, its BBs then lie across the line its prediction draws.
+
+    A marker observed in one view only also slides, at each tilt (the untilted pose too), up to ``SLIDE_MM`` along
+    that view's beam as this view images it: its depth there comes from magnification and the camera, and where every
+    marker of the solve was so posed the solve can leave it 14 mm off (twin seed 12101, first pose, markers flat:
+    marker 1's lateral BBs 91 px from its prediction, claimed so)."""
     free = {k: b for k, (_, b) in views.items()}
     for per in claims.values():
         for view, _, img in per:
             free[id(view)] = _without(free[id(view)], img)
     steps = np.radians(np.arange(-TILT_SEARCH_DEG, TILT_SEARCH_DEG + 1e-9, TILT_STEP_DEG))
-    tilts = sorted(((a, b) for a in steps for b in steps if a or b), key=lambda t: np.hypot(*t))
+    tilts = sorted(((a, b) for a in steps for b in steps), key=lambda t: np.hypot(*t))
     for i in sorted(poses):
         have = {id(o[0]) for o in by_id[i].observations} | {id(c[0]) for c in claims.get(i, [])}
         design = marker_set.by_id(i).bb_centers_mm
@@ -225,9 +231,12 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
             if k in have or len(free[k]) < TILTED_MIN_BBS:
                 continue
             best = None
-            for a, b in tilts:
+            # Observed in one view only, the pose's depth along that view's beam is its weakest part: slide along its image.
+            own = {id(o[0]): o[0] for o in by_id[i].observations}
+            slide = beam_image_px(view, next(iter(own.values())), poses[i][:3, 3], SLIDE_MM) if len(own) == 1 else None
+            for a, b in tilts if slide is not None else tilts[1:]:
                 pose = poses[i] @ from_rotvec([a, b, 0.0])
-                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS)
+                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS, slide_px=slide)
                 if found is not None and (best is None or len(found[0]) > len(best[0])):
                     best = found
             if best is None:
