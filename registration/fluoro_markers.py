@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from .carm import REFERENCE_PIXEL_MM, CArmView
 from .blob_split import split_touching
@@ -371,30 +372,87 @@ def _find_markers(img, bb_image, wire_image, marker_set: MarkerSet, *, bb_thresh
     markers: list[DetectedMarker] = []
     rejected: list[RejectedRing] = []
     ring = dict(blobs=blobs, marker_set=marker_set, ring_r=ring_r, wire_px=wire_px, min_ring_px=min_ring_px, max_ring_px=max_ring_px, shape=img.shape)
-    for piece, strong_pieces in _wire_components(wire_image, high=wire_threshold, low=wire_low, min_extent_px=min_ring_px):
-        found = _ring_marker(*piece, **ring)
-        if isinstance(found, RejectedRing) and strong_pieces:
-            # What hysteresis grew did not identify a marker (two rings joined, anatomy's texture bent its
-            # ellipse): the pieces over the high threshold alone, as a single threshold would have found them.
-            alone = [_ring_marker(*p, **ring) for p in strong_pieces]
-            if any(isinstance(r, DetectedMarker) for r in alone):
-                markers += [r for r in alone if isinstance(r, DetectedMarker)]
-                rejected += [r for r in alone if isinstance(r, RejectedRing)]
+    for group in _arcs_of_one_ring(_wire_components(wire_image, high=wire_threshold, low=wire_low, min_extent_px=min_ring_px),
+                                   wire_px=wire_px, max_ring_px=max_ring_px):
+        if len(group) > 1:
+            # Arcs that one ellipse joins: the ring whole, when that identifies its marker; else each arc as it is.
+            whole = _piece_markers(_joined(group), ring)
+            if any(isinstance(r, DetectedMarker) for r in whole):
+                markers += [r for r in whole if isinstance(r, DetectedMarker)]
+                rejected += [r for r in whole if isinstance(r, RejectedRing)]
                 continue
-        if isinstance(found, RejectedRing) and (found.reason == _OVERLAP or (found.reason.startswith(_NO_MATCH) and not _one_ellipse(piece[1], ring["wire_px"]))):
-            split = _split_overlap(piece[1], **ring)
-            if any(isinstance(r, DetectedMarker) for r in split):
-                markers += [r for r in split if isinstance(r, DetectedMarker)]
-                rejected += [r for r in split if isinstance(r, RejectedRing)]
-                continue
-        if isinstance(found, DetectedMarker):
-            markers.append(found)
-        elif found is not None:
-            rejected.append(found)
+        for piece in group:
+            found = _piece_markers(piece, ring)
+            markers += [r for r in found if isinstance(r, DetectedMarker)]
+            rejected += [r for r in found if isinstance(r, RejectedRing)]
     markers, twice = _merge_split_rings(markers)
     rejected += twice
     every = tuple(DetectedBB(center_px=c, diameter_px=float(d), large=False, elongation=e) for c, d, e in blobs)
     return FluoroDetections(markers=tuple(sorted(markers, key=lambda m: m.marker_id)), rejected=tuple(rejected), blobs=every)
+
+
+def _piece_markers(component, ring: dict) -> list:
+    """The markers and rejected rings of one piece of wire ((piece, its pieces over the high threshold alone), as
+    :func:`_wire_components` gives it)."""
+    piece, strong_pieces = component
+    found = _ring_marker(*piece, **ring)
+    if isinstance(found, RejectedRing) and strong_pieces:
+        # What hysteresis grew did not identify a marker (two rings joined, anatomy's texture bent its
+        # ellipse): the pieces over the high threshold alone, as a single threshold would have found them.
+        alone = [_ring_marker(*p, **ring) for p in strong_pieces]
+        if any(isinstance(r, DetectedMarker) for r in alone):
+            return [r for r in alone if r is not None]
+    if isinstance(found, RejectedRing) and (found.reason == _OVERLAP or (found.reason.startswith(_NO_MATCH) and not _one_ellipse(piece[1], ring["wire_px"]))):
+        split = _split_overlap(piece[1], **ring)
+        if any(isinstance(r, DetectedMarker) for r in split):
+            return split
+    return [] if found is None else [found]
+
+
+def _arcs_of_one_ring(components: list, *, wire_px: float, max_ring_px: float) -> list[list]:
+    """``components`` (:func:`_wire_components`) grouped: pieces whose union one ellipse follows
+    (:func:`_one_ellipse`), no larger than a ring, and each within ``2 wire_px`` of another of its group, in one group;
+    every other piece alone.
+
+    A flat ring's BBs lie along its wire, and the BB image's opening takes the wire with them where they touch it: the
+    ring breaks into arcs. Each arc fits an ellipse of its own, shorter than the ring and off along it; an arc holding
+    the BBs of its half can then identify its marker on a pattern slid by one BB (twin seed 13502, AP+lateral, markers
+    flat: the lateral ring of marker 11 at 0.11 broke in two halves, the upper one identified marker 11 with its centre
+    22 px off along the ring and two of six BBs paired with their neighbours' design places)."""
+    groups = [[c] for c in components]
+    while True:
+        for a in range(len(groups)):
+            for b in range(a + 1, len(groups)):
+                if _arcs_join(groups[a], groups[b], wire_px=wire_px, max_ring_px=max_ring_px):
+                    groups[a] = groups[a] + groups.pop(b)
+                    break
+            else:
+                continue
+            break
+        else:
+            return groups
+
+
+def _arcs_join(first: list, second: list, *, wire_px: float, max_ring_px: float) -> bool:
+    pa = np.concatenate([c[0][1] for c in first])
+    pb = np.concatenate([c[0][1] for c in second])
+    lo, hi = np.minimum(pa.min(axis=0), pb.min(axis=0)), np.maximum(pa.max(axis=0), pb.max(axis=0))
+    if float(np.max(hi - lo)) > max_ring_px:
+        return False
+    # Near: the bounding boxes within 2 wire widths, then the nearest pixels so.
+    if np.any(np.maximum(pa.min(axis=0), pb.min(axis=0)) - np.minimum(pa.max(axis=0), pb.max(axis=0)) > 2 * wire_px):
+        return False
+    if float(cKDTree(pa).query(pb, k=1)[0].min()) > 2 * wire_px:
+        return False
+    return _one_ellipse(np.concatenate([pa, pb]), wire_px)
+
+
+def _joined(group: list):
+    """One piece of wire (as :func:`_wire_components` gives it) from a group of arcs (:func:`_arcs_of_one_ring`)."""
+    pts = np.concatenate([c[0][1] for c in group])
+    x, y = pts.min(axis=0)
+    w, h = pts.max(axis=0) - pts.min(axis=0) + 1
+    return ((int(x), int(y), int(w), int(h), len(pts)), pts), [p for c in group for p in c[1]]
 
 
 def _one_ellipse(pts, wire_px: float, *, share: float = 0.85) -> bool:

@@ -22,7 +22,7 @@ from drillnav.registration.video_markers import VideoMarkerLocator
 from axis_errors import axis_error
 
 
-@pytest.fixture(scope="module", params=[40, 41])
+@pytest.fixture(scope="module", params=[41, 44])
 def lateral(request):
     seed = request.param
     scene = make_scene(seed=seed, n_markers=3, views="lateral")
@@ -36,8 +36,8 @@ def lateral(request):
 
 def test_edge_on_marker_in_a_single_lateral_view_is_registered(lateral):
     scene, det, poses, video, carm_from_drill = lateral
-    # The third marker stands 83 deg (seed 40) and 85 deg (seed 41) to the beam: its ring is rejected, as edge-on or for
-    # the few BBs its thin ellipse holds.
+    # The third marker stands 85 deg to the beam (seeds 41 and 44): its ring is rejected, as edge-on or for the few BBs
+    # its thin ellipse holds. (Seed 40's, at 83 deg, is identified since its ring's arcs are joined: fluoro_markers.)
     assert len(det.markers) == 2 and det.rejected, "the scene must show a marker fluoroscopy does not identify, leaving 2 identified"
     assert len(video.markers) == 3
     reg = register_video_to_fluoro(video, poses, scene.marker_set, scene.calibrated_camera)
@@ -77,7 +77,7 @@ def test_register_cli_single_lateral_view_with_an_edge_on_marker(tmp_path):
     from drillnav.service.cli import main
 
     d = tmp_path / "scene"
-    assert main(["sim", "scene", "--seed", "40", "--markers", "3", "--views", "lateral", "--out", str(d)]) == 0
+    assert main(["sim", "scene", "--seed", "44", "--markers", "3", "--views", "lateral", "--out", str(d)]) == 0
     out = tmp_path / "result.json"
     assert main(["register", "--markers", str(d / "markers.json"), "--camera", str(d / "camera.json"), "--drill", str(d / "drill.json"),
                  "--video", str(d / "camera.png"), "--fluoro", str(d / "fluoro" / "lateral.dcm"), "--out", str(out)]) == 0

@@ -9,6 +9,7 @@ A full-frame render costs about a second of CPU, and several tests (in one pytes
 set is rendered once per process and handed out read-only, so a test that drew on a shared frame would fail loudly.
 """
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -118,9 +119,10 @@ def gloved_frame():
 CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
 
 
-def operating_room_scene(seed: int, pair: str, **scene_args):
+def operating_room_scene(seed: int, pair: str, *, marker_tilt_deg: tuple[float, float] | None = None, **scene_args):
     """The accuracy study's scene of ``seed`` and view ``pair`` (every degradation, the real CT as anatomy): (scene, k),
-    k the pair's index, which seeds its images (``accuracy.camera_shots``). Skips the test where the CT is absent."""
+    k the pair's index, which seeds its images (``accuracy.camera_shots``). Skips the test where the CT is absent.
+    ``marker_tilt_deg``: the markers' tilt from the AP beam as ``accuracy.py --marker-tilt`` sets it (None: the twin's)."""
     import pytest
 
     if not CT.exists():
@@ -130,5 +132,8 @@ def operating_room_scene(seed: int, pair: str, **scene_args):
     patient = accuracy.load_patient(CT)
     pairs = list(accuracy._pairs(np.random.default_rng(seed)).items())
     k = [p for p, _ in pairs].index(pair)
-    return accuracy.make_scene(seed=seed, views=pairs[k][1], render=False, degradations=Degradations.parse("all"), voxel_anatomy=patient,
+    degradations = Degradations.parse("all")
+    if marker_tilt_deg is not None:
+        degradations = replace(degradations, marker_tilt_deg=marker_tilt_deg)
+    return accuracy.make_scene(seed=seed, views=pairs[k][1], render=False, degradations=degradations, voxel_anatomy=patient,
                                **scene_args), k
