@@ -421,27 +421,29 @@ def _arcs_of_one_ring(components: list, *, wire_px: float, max_ring_px: float) -
     22 px off along the ring and two of six BBs paired with their neighbours' design places)."""
     groups = [[c] for c in components]
     while True:
-        for a in range(len(groups)):
-            for b in range(a + 1, len(groups)):
-                if _arcs_join(groups[a], groups[b], wire_px=wire_px, max_ring_px=max_ring_px):
-                    groups[a] = groups[a] + groups.pop(b)
-                    break
-            else:
-                continue
-            break
-        else:
+        pair = next(((a, b) for a in range(len(groups)) for b in range(a + 1, len(groups))
+                     if _arcs_join(groups[a], groups[b], wire_px=wire_px, max_ring_px=max_ring_px)), None)
+        if pair is None:
             return groups
+        a, b = pair
+        groups[a] = groups[a] + groups.pop(b)
+
+
+def _box(group: list) -> NDArray[np.float64]:
+    """(x0, y0, x1, y1) px: the bounding box of a group of pieces (their connected-component stats)."""
+    s = np.array([c[0][0][:4] for c in group], dtype=np.float64)
+    return np.concatenate([s[:, :2].min(axis=0), (s[:, :2] + s[:, 2:4] - 1).max(axis=0)])
 
 
 def _arcs_join(first: list, second: list, *, wire_px: float, max_ring_px: float) -> bool:
+    ba, bb = _box(first), _box(second)
+    # No larger than a ring together, and their boxes within 2 wire widths; then their nearest pixels so.
+    if float(np.max(np.maximum(ba[2:], bb[2:]) - np.minimum(ba[:2], bb[:2]))) > max_ring_px:
+        return False
+    if np.any(np.maximum(ba[:2], bb[:2]) - np.minimum(ba[2:], bb[2:]) > 2 * wire_px):
+        return False
     pa = np.concatenate([c[0][1] for c in first])
     pb = np.concatenate([c[0][1] for c in second])
-    lo, hi = np.minimum(pa.min(axis=0), pb.min(axis=0)), np.maximum(pa.max(axis=0), pb.max(axis=0))
-    if float(np.max(hi - lo)) > max_ring_px:
-        return False
-    # Near: the bounding boxes within 2 wire widths, then the nearest pixels so.
-    if np.any(np.maximum(pa.min(axis=0), pb.min(axis=0)) - np.minimum(pa.max(axis=0), pb.max(axis=0)) > 2 * wire_px):
-        return False
     if float(cKDTree(pa).query(pb, k=1)[0].min()) > 2 * wire_px:
         return False
     return _one_ellipse(np.concatenate([pa, pb]), wire_px)

@@ -103,10 +103,10 @@ def test_split_is_deterministic():
     assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
 
 
-def _lateral(seed, **scene_args):
+def _lateral(seed):
     """The study's AP+lateral scene of ``seed``: its lateral view's detections, after checking that every identified
     marker's ring lies where the twin put that marker (within 20 px of its centre's image)."""
-    scene, k = operating_room_scene(seed, "ap+lateral", **scene_args)
+    scene, k = operating_room_scene(seed, "ap+lateral")
     image_rng = np.random.default_rng([seed, k, 1])
     images = {n: render_fluoro(scene, n, image_rng) for n in scene.views}
     view = scene.views["lateral"]
