@@ -213,7 +213,8 @@ def fit_square_to_edges(
     steps = np.diag(h)
     jc = ((_pinhole(camera, fit.x + steps, obj) - _pinhole(camera, fit.x - steps, obj)).reshape(6, 8) / (2 * h[:, None])).T
     cov_c = jc @ cov @ jc.T
-    corner_sigma = np.sqrt(np.array([(cov_c[2 * i, 2 * i] + cov_c[2 * i + 1, 2 * i + 1]) / 2.0 for i in range(4)]))
+    with np.errstate(invalid="ignore"):  # a pose the steps leave unfixed: its covariance, near singular, can come out negative (refused below)
+        corner_sigma = np.sqrt(np.array([(cov_c[2 * i, 2 * i] + cov_c[2 * i + 1, 2 * i + 1]) / 2.0 for i in range(4)]))
     if not np.all(np.isfinite(corner_sigma)) or corner_sigma.max() > max_corner_sigma_px:
         return None
     pose = np.eye(4)
