@@ -445,7 +445,8 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
 
     A frame that shares no marker with fluoroscopy first has the missing tags searched for without a prediction
     (:func:`search_missing_tags`); a tag that the registration puts in the frame but that the recovery did not find
-    where predicted is searched for the same way afterwards. ``search`` False skips both (a caller that searched
+    where predicted is searched for the same way afterwards, and so are the tags of the set's markers that fluoroscopy
+    placed nowhere (found, they claim their markers' BBs). ``search`` False skips both (a caller that searched
     already, or the tracking path, which cannot spend ~50 ms a frame).
 
     A joint registration that is refused for want of a shared marker, or that rests on one marker
