@@ -267,3 +267,26 @@ def _assert_claims_its_own_lateral_bbs(scene, pose, carm_from_marker, lateral_bb
     assert view is scene.views["lateral"] and len(obj) >= min_bbs
     index = [int(np.argmin(np.linalg.norm(design - b, axis=1))) for b in obj]
     assert np.allclose(img, lateral_bbs[index]), "each claimed blob is the image of the BB it is claimed for"
+
+
+def test_two_bbs_merged_into_one_blob_do_not_hand_the_claim_to_a_shift_by_one_spacing():
+    """Edge-on, two of a marker's BBs merge into one blob. That blob stands for the nearer BB only; the shift that puts the
+    pattern where it is keeps the claim on its other BBs. Before, the whole shift was refused and three free blobs one
+    shift further won (seed 13402's lateral view with flat markers: three BBs claimed 27 px off, the axis 7.4 mm off)."""
+    from drillnav.registration.marker_pose import claim_bbs
+
+    scene = make_scene(seed=5, render=False)
+    view = next(iter(scene.views.values()))
+    marker_id = scene.marker_set.ids[0]
+    pose = scene.carm_from_marker[marker_id]
+    design = scene.marker_set.by_id(marker_id).bb_centers_mm.copy()
+    design[1] = design[0] + np.array([0.3, 0.0, 0.0])  # BB 1 beside BB 0: their images merge
+    shift_px = np.array([6.0, -3.0])  # the pose's error along the beam: the whole pattern moved
+    at = view.project(apply(pose, design)) + shift_px
+    blobs = np.delete(at, 1, axis=0)  # one blob for BBs 0 and 1
+    decoy = at[2:5] + np.array([14.0, 9.0])  # three free blobs that fit BBs 2-4 one shift further
+    blobs = np.vstack([blobs, decoy])
+    design_kept, claimed = claim_bbs(view, pose, design, blobs, search_px=30.0, tol_px=3.5)
+    assert len(design_kept) == len(design) - 1
+    assert not any(np.allclose(design_kept_i, design[1]) for design_kept_i in design_kept)
+    assert np.abs(claimed - np.delete(at, 1, axis=0)).max() < 1e-9
