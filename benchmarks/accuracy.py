@@ -128,7 +128,7 @@ class _Shots:
 
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
-        diagnose: list | None = None, recover: bool = True, measured_markers: bool = False,
+        diagnose: list | None = None, recover: bool = True, measured_markers: bool = False, exact_calibration: bool = False,
         camera_size: tuple[int, int] = (1280, 720), carm: dict | None = None) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
@@ -138,6 +138,9 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     them before each registration (False: the detector's tags alone, for comparison).
     ``measured_markers``: the product is handed the markers as ``drillnav markers measure`` writes them (the BBs as
     built, in the frame that best fits the design: :meth:`Scene.measured_marker_set`) instead of their design.
+    ``exact_calibration``: the product is handed the drill camera's true intrinsics and the drill axis's true line
+    instead of the calibration the twin draws at the uncertainty camera.json and drill.json state (what that draw adds
+    to the error, for comparison; the predicted error still assumes the stated uncertainty).
     ``camera_size``: the drill camera's frame (width, height) px, its horizontal field of view as the twin's (76 deg).
     ``carm``: the C-arm's geometry and detector (``PAPER_CARM``'s keys; None: ``PAPER_CARM``).
     """
@@ -155,6 +158,9 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
                                image_size=camera_size, carm=carm)
             if measured_markers:
                 scene = replace(scene, marker_set=scene.measured_marker_set())
+            if exact_calibration:
+                scene = replace(scene, calibrated_camera=replace(scene.true_camera, uncertainty=scene.calibrated_camera.uncertainty),
+                                calibrated_axis_drill=TRUE_DRILL_AXIS_CAMERA)
             names = list(scene.views)
             if (seed, pair, fluoro_key) not in shots.fluoro:
                 image_rng = np.random.default_rng([seed, k, 1])
@@ -559,6 +565,9 @@ def main() -> None:
     ap.add_argument("--ms", type=int, nargs="+", default=[3, 4, 5], help="numbers of markers M to study (default 3 4 5)")
     ap.add_argument("--measured-markers", action="store_true", help="hand the product the markers as `drillnav markers measure` writes "
                     "them (BBs as built, taken as perfectly measured) instead of markers.json's design")
+    ap.add_argument("--exact-calibration", action="store_true", help="hand the product the drill camera's true intrinsics and the drill "
+                    "axis's true line instead of the calibration drawn at the uncertainty camera.json and drill.json state: what the "
+                    "calibration adds to the error (the predicted error still assumes the stated uncertainty)")
     ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
                     "registration's prediction (the product before it; for comparison)")
     ap.add_argument("--camera-size", default="1280x720", help="the drill camera's frame, WIDTHxHEIGHT px (default %(default)s; the "
@@ -608,7 +617,7 @@ def main() -> None:
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
     result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
-                 recover=not args.no_recover, measured_markers=args.measured_markers, camera_size=camera_size, carm=carm)
+                 recover=not args.no_recover, measured_markers=args.measured_markers, exact_calibration=args.exact_calibration, camera_size=camera_size, carm=carm)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)
@@ -619,7 +628,7 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None:  # the docs table is the twin's own devices
+    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None and not args.exact_calibration:  # the docs table is the twin's own devices
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
@@ -639,6 +648,7 @@ def main() -> None:
         if s["n"]:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
+           exact_calibration=args.exact_calibration,
            camera_size=list(camera_size), detector=args.detector or "976x976@0.304", marker_tilt_deg=list(degradations.marker_tilt_deg), summary=summary,
            per_degradation=per_deg)
 
