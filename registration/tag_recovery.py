@@ -244,7 +244,7 @@ class BorderSteps:
 
 def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], *, tolerance_px: float = 8.0, samples: int = 48,
                   step_px: float = 0.5, min_edge_fraction: float = 0.3, min_contrast: float = 30.0, partial: bool = False,
-                  square: Callable[[BorderSteps], SquareFit | None] | None = None) -> TagRecovery:
+                  square: Callable[[BorderSteps], SquareFit | None] | None = None, max_corner_shift_px: float | None = None) -> TagRecovery:
     """A tag's four border edges found near ``predicted_px`` (4, 2) and their corners, identity not judged (step 1 of
     the module docstring): ``corners_px`` None with the reason when an edge is not found.
 
@@ -258,9 +258,12 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     stuck flat (48 seeds, AP+lateral two views) the second case took the median 1.11 -> 1.08 mm, 50 registrations
     nearer the truth and 22 farther (docs/identity_and_error.md).
 
+    ``max_corner_shift_px``: how far the fitted corners may lie from ``predicted_px`` (None: 1.5 ``tolerance_px``).
+
     Shared by :func:`recover_tag` (a predicted tag) and :mod:`.tag_search` (a candidate outline).
     """
     pred = np.asarray(predicted_px, dtype=np.float64)
+    limit = 1.5 * tolerance_px if max_corner_shift_px is None else float(max_corner_shift_px)
     got = border_steps(gray, pred, tolerance_px=tolerance_px, samples=samples, step_px=step_px, min_contrast=min_contrast, partial=partial,
                        allow_one_missing=square is not None)
     if isinstance(got, str):
@@ -282,8 +285,8 @@ def fit_tag_edges(gray: NDArray[np.float32], predicted_px: NDArray[np.float64], 
     else:
         k = int(np.argmin(fraction))
         return TagRecovery(corners_px=None, reason=f"edge {k}: a clean border step along only {100 * fraction[k]:.0f} % of it", edge_fraction=frac_t)
-    if not crossed or np.linalg.norm(corners - pred, axis=1).max() > 1.5 * tolerance_px:
-        return TagRecovery(corners_px=None, reason=f"edges found but their corners lie over {1.5 * tolerance_px:.0f} px from the prediction", edge_fraction=frac_t)
+    if not crossed or np.linalg.norm(corners - pred, axis=1).max() > limit:
+        return TagRecovery(corners_px=None, reason=f"edges found but their corners lie over {limit:.0f} px from the prediction", edge_fraction=frac_t)
     return TagRecovery(corners_px=corners, reason="", edge_fraction=frac_t)
 
 

@@ -59,6 +59,9 @@ QUADS_PER_HULL = 3       # the best-filled quadrilaterals of one hull tried as c
 # (seeds 7001-7010, frames with every tag degraded) a gloved tag's right quadrilateral ranked up to 31st.
 MAX_CANDIDATES = 64
 SAME_QUAD_PX = 6.0       # two candidates whose corners all lie this close (px, at some rotation) are one
+# How far the edges fitted to a candidate outline may put a corner from it, to be fitted once more from there (a
+# bite's corner is loose: :func:`_fit_outline`); within 1.5 times the edge tolerance the first fit stands.
+BITE_CORNER_SHIFT_PX = 24.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -249,6 +252,21 @@ def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, di
     return FoundTag(aruco_id=int(best), corners_px=np.roll(corners, -int(k), axis=0), cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up)
 
 
+def _fit_outline(gray: NDArray[np.float32], quad: NDArray[np.float64], *, tolerance_px: float):
+    """The border edges of a candidate outline (4, 2) px fitted (:func:`.tag_recovery.fit_tag_edges`), once more from
+    where they put the corners when that is farther than the fit allows but within ``BITE_CORNER_SHIFT_PX``.
+
+    A bite's corner, where two of the hull's sides cross, lies where the sides of the bite point, not always where the
+    tag's edges meet: a glove's edge that runs in at a slant bends the side beside it (seed 11700, flat markers: a
+    hidden corner placed 14-17 px off). The edges near the other corners are found all the same and cross at the
+    hidden corner; fitted again from there, every edge must show its border step where the tag now lies.
+    """
+    first = fit_tag_edges(gray, quad, tolerance_px=tolerance_px, partial=True, max_corner_shift_px=BITE_CORNER_SHIFT_PX)
+    if not first.accepted or np.linalg.norm(first.corners_px - quad, axis=1).max() <= 1.5 * tolerance_px:
+        return first
+    return fit_tag_edges(gray, first.corners_px, tolerance_px=tolerance_px, partial=True)
+
+
 def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[int], exclude_px: Sequence[NDArray[np.float64]] = (),
                 tolerance_px: float = 6.0, half_above_px: int = 800, rivals: Sequence[int] | None = None) -> list[FoundTag]:
     """The tags of ``wanted`` (ArUco ids of ``dictionary``) found in a grayscale frame (H, W) uint8 without a prediction.
@@ -273,7 +291,7 @@ def search_tags(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[in
         # A cheap look first: the outline's border reads black against a white base (a bite costs a few cells).
         if read_code(gray_f, quad, code_size=code_size, partial=True).reason:
             continue
-        edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px, partial=True)
+        edges = _fit_outline(gray_f, quad, tolerance_px=tolerance_px)
         if not edges.accepted:
             continue
         tag = identify_quad(gray_f, edges.corners_px, dictionary=dictionary, wanted=[i for i in wanted if i not in found], partial=True,
