@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .tag_recovery import dictionary_codes, fit_tag_edges, read_code
+from .tag_recovery import TagRecovery, dictionary_codes, fit_tag_edges, read_code
 
 __all__ = ["FoundTag", "tag_candidates", "identify_quad", "search_tags", "MIN_FILL", "QUADS_PER_HULL", "MAX_CANDIDATES"]
 
@@ -252,7 +252,7 @@ def identify_quad(gray: NDArray[np.float32], corners: NDArray[np.float64], *, di
     return FoundTag(aruco_id=int(best), corners_px=np.roll(corners, -int(k), axis=0), cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up)
 
 
-def _fit_outline(gray: NDArray[np.float32], quad: NDArray[np.float64], *, tolerance_px: float):
+def _fit_outline(gray: NDArray[np.float32], quad: NDArray[np.float64], *, tolerance_px: float) -> TagRecovery:
     """The border edges of a candidate outline (4, 2) px fitted (:func:`.tag_recovery.fit_tag_edges`), once more from
     where they put the corners when that is farther than the fit allows but within ``BITE_CORNER_SHIFT_PX``.
 
