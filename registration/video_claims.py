@@ -177,7 +177,7 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
 
 
 def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: dict[int, NDArray[np.float64]], marker_set: MarkerSet, *,
-                        min_bbs: int = 3) -> dict[int, tuple]:
+                        min_bbs: int = 3, camera_only: dict[int, NDArray[np.float64]] | None = None) -> dict[int, tuple]:
     """{marker id: ((view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...)}: the free blobs of the views where
     a marker of ``carm_from_marker`` ({id: (4, 4)}, a joint solve's poses) has no observations, claimed at the BBs those
     poses predict; only the markers that gained a view, and only the observations they gained.
@@ -189,6 +189,10 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
     marker's pose is within about a degree, and its BBs are where the claim looks for them. Free blobs: those no
     marker identified or claimed in that view; claimed blobs that are no disc are left out as
     :func:`claim_from_video` leaves them (:func:`.marker_pose.placing_claim`).
+
+    ``camera_only``: {marker id: (4, 4)} of markers the camera sees that no view observes, each predicted through the
+    solve's ``carm_from_drill`` and its tag's pose in the camera; each is claimed like the solve's markers but on
+    ``TILTED_MIN_BBS`` or more BBs in a view (nothing else places it), after them, among the blobs they leave.
     """
     by_id = {p.marker_id: p for p in marker_poses}
     views, non_disc = _view_blobs(marker_poses)
@@ -203,7 +207,21 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
     poses = {i: t for i, t in carm_from_marker.items() if i in by_id}
     claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs)
     _tilted_claims(claims, views=free_views, by_id=by_id, poses=poses, marker_set=marker_set)
-    return {i: tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per) for i, per in sorted(claims.items())}
+    # The camera's markers that no view observes: predicted through the solve, claimed among the blobs left.
+    unseen = {i: np.asarray(t, dtype=np.float64) for i, t in (camera_only or {}).items()
+              if i not in poses and not (i in by_id and by_id[i].observations) and i in marker_set.ids}
+    if unseen:
+        left = {k: (view, b) for k, (view, b) in free_views.items()}
+        for per in claims.values():
+            for view, _, img in per:
+                left[id(view)] = (view, _without(left[id(view)][1], img))
+        more = _claims(np.eye(4), views=left, by_id={}, d_from_m=unseen, marker_set=marker_set, min_bbs=max(min_bbs, TILTED_MIN_BBS))
+        _tilted_claims(more, views=left, by_id={}, poses=unseen, marker_set=marker_set)
+        claims.update(more)
+    placed = {i: tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per) for i, per in sorted(claims.items())}
+    # A marker nothing else places keeps a view only on two or more BBs placed there (its non-disc blobs left out).
+    placed = {i: tuple(o for o in per if i not in unseen or len(o[1]) >= 2) for i, per in placed.items()}
+    return {i: per for i, per in placed.items() if per}
 
 
 def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, MarkerPose], poses: dict[int, NDArray[np.float64]],
@@ -225,14 +243,15 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
     steps = np.radians(np.arange(-TILT_SEARCH_DEG, TILT_SEARCH_DEG + 1e-9, TILT_STEP_DEG))
     tilts = sorted(((a, b) for a in steps for b in steps), key=lambda t: np.hypot(*t))
     for i in sorted(poses):
-        have = {id(o[0]) for o in by_id[i].observations} | {id(c[0]) for c in claims.get(i, [])}
+        own_obs = by_id[i].observations if i in by_id else ()
+        have = {id(o[0]) for o in own_obs} | {id(c[0]) for c in claims.get(i, [])}
         design = marker_set.by_id(i).bb_centers_mm
         for k, (view, _) in views.items():
             if k in have or len(free[k]) < TILTED_MIN_BBS:
                 continue
             best = None
             # Observed in one view only, the pose's depth along that view's beam is its weakest part: slide along its image.
-            own = {id(o[0]): o[0] for o in by_id[i].observations}
+            own = {id(o[0]): o[0] for o in own_obs}
             slide = beam_image_px(view, next(iter(own.values())), poses[i][:3, 3], SLIDE_MM) if len(own) == 1 else None
             for a, b in tilts if slide is not None else tilts[1:]:
                 pose = poses[i] @ from_rotvec([a, b, 0.0])

@@ -202,10 +202,25 @@ def register_video_to_fluoro(
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
         # The claims predicted each marker through its tag's pose in the camera; the solve's poses, refined by every
         # BB and corner, may find the BBs of a marker in a view where those missed them (edge-on): solved again with them.
-        again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set)
+        # A marker the camera sees that no view observed (its BBs edge-on, or only a tilted prediction would find
+        # them) is predicted through the solve's drill and its tag, and claimed too.
+        camera_only = {i: sol.carm_from_drill @ drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm)
+                       for i in vids if i in marker_set.ids and i not in joinable}
+        again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set, camera_only=camera_only)
         if again:
+            blobs_from = next(iter(every.values()))
+            for i in sorted(set(again) - set(every)):
+                every[i] = MarkerPose(marker_id=i, carm_from_marker=camera_only[i], residual_px=float("nan"), n_views=0, n_points=0, converged=False,
+                                      observations=(), view_blobs=blobs_from.view_blobs, non_disc_blobs=blobs_from.non_disc_blobs)
+                marker_poses = (*marker_poses, every[i])
+            gained = sorted(i for i in again if i in camera_only)
             every.update({i: with_claims(every[i], again[i]) for i in again})
             marker_poses = tuple(with_claims(p, again[p.marker_id]) if p.marker_id in again else p for p in marker_poses)
+            if gained:
+                joinable = sorted({*joinable, *gained})
+                carm_from_marker.update({i: camera_only[i] for i in gained})
+                solve.update(corners_px={i: vids[i].corners_px for i in joinable}, corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
+                             min_markers=min(HORN_MIN_MARKERS, len(joinable)))
             solve["observations"] = {i: every[i].observations for i in joinable}
             sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
         alternative = None

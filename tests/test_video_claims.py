@@ -290,3 +290,69 @@ def test_two_bbs_merged_into_one_blob_do_not_hand_the_claim_to_a_shift_by_one_sp
     assert len(design_kept) == len(design) - 1
     assert not any(np.allclose(design_kept_i, design[1]) for design_kept_i in design_kept)
     assert np.abs(claimed - np.delete(at, 1, axis=0)).max() < 1e-9
+
+
+def test_a_marker_the_camera_sees_that_no_view_observed_is_claimed_through_the_solve(monkeypatch):
+    """A marker whose tag the camera sees but which no view observed (its rings hidden, its BBs edge-on) is predicted
+    through the solve's drill and its tag's pose, tilted as a small tag's pose is, and claims its BBs among the free
+    blobs, each for the design BB it is the image of; not when the prediction is 10 mm off across both beams."""
+    from drillnav.registration.transforms import from_rotvec
+    from drillnav.registration.video_claims import TILTED_MIN_BBS, claim_from_solution
+
+    scene, pose, true, lateral_bbs = _ap_observed_marker()
+    ap, lateral = scene.views["ap"], scene.views["lateral"]
+    other = sorted(scene.carm_from_marker)[1]
+    design, other_true = scene.marker_set.by_id(other).bb_centers_mm, scene.carm_from_marker[other]
+    rng = np.random.default_rng(11)
+    other_px = {id(v): v.project(apply(other_true, design)) + rng.normal(scale=0.3, size=(len(design), 2)) for v in (ap, lateral)}
+    blobs = tuple((v, np.concatenate([b, other_px[id(v)]])) for v, b in pose.view_blobs)
+    seen = replace(pose, view_blobs=blobs)
+    predicted = other_true @ from_rotvec(np.radians([9.0, -6.0, 0.0]))
+    assert other not in claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set), "not claimed unless the camera sees it"
+    got = claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set, camera_only={other: predicted})
+    assert {id(o[0]) for o in got[other]} == {id(ap), id(lateral)}
+    for view, obj, img in got[other]:
+        assert len(obj) >= TILTED_MIN_BBS
+        index = [int(np.argmin(np.linalg.norm(design - b, axis=1))) for b in obj]
+        assert np.allclose(img, other_px[id(view)][index]), "each claimed blob is the image of the BB it is claimed for"
+    across = np.cross(other_true[:3, 3] - lateral.source_position_mm, other_true[:3, 3] - ap.source_position_mm)
+    off = predicted.copy()
+    off[:3, 3] += 10.0 * across / np.linalg.norm(across)
+    assert other not in claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set, camera_only={other: off})
+    # Only the tilts find it: the prediction as it is explains too few BBs.
+    from drillnav.registration import video_claims
+    monkeypatch.setattr(video_claims, "TILT_SEARCH_DEG", 0.0)
+    assert other not in claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set, camera_only={other: predicted})
+
+
+def test_a_tag_whose_marker_no_view_identified_joins_the_solve_by_its_claimed_bbs(monkeypatch):
+    """AP + lateral, three markers the camera sees; fluoroscopy identifies one of them in neither view, and the camera's
+    constellation claims nothing for it (the first claims switched off). After the solve its BBs are claimed where the
+    solve and its tag put them, and it joins the solve: the registration rests on three markers, not two."""
+    from drillnav.registration import video_fluoro
+    from drillnav.registration.fluoro_markers import detect_in_view
+
+    scene = make_scene(seed=41, n_markers=3, views="ap,lateral", render=True)
+    names = ("ap", "lateral")
+    dets = [detect_in_view(scene.fluoro_log[n], scene.views[n], scene.marker_set) for n in names]
+    poses = register_markers(dets, [scene.views[n] for n in names], scene.marker_set)
+    rng = np.random.default_rng(41)
+    carm_from_drill = scene.drill_pose_towards(rng, offset_mm=5.0, tilt_deg=5.0)
+    video = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids).locate(scene.render_camera(rng, carm_from_drill=carm_from_drill))
+    assert len(video.markers) == 3 and len(poses) == 3
+    hidden = sorted(p.marker_id for p in poses)[-1]
+    # Not identified, its BBs are among each view's free blobs.
+    lost = {id(view): img for view, _, img in {p.marker_id: p for p in poses}[hidden].observations}
+    kept = tuple(replace(p, view_blobs=tuple((v, np.concatenate([b, lost.get(id(v), np.empty((0, 2)))])) for v, b in p.view_blobs))
+                 for p in poses if p.marker_id != hidden)
+    monkeypatch.setattr(video_fluoro, "claim_from_video", lambda video, marker_poses, marker_set: marker_poses)
+    reg = register_video_to_fluoro(video, kept, scene.marker_set, scene.calibrated_camera)
+    assert hidden in reg.used_ids and len(reg.used_ids) == 3
+    claimed = {p.marker_id: p for p in reg.marker_poses}[hidden]
+    assert claimed.n_views == 2 and not claimed.converged
+    true = scene.carm_from_marker[hidden]
+    for view, obj, img in claimed.observations:
+        assert np.all(np.linalg.norm(img - view.project(apply(true, obj)), axis=1) < 1.5), "each claimed blob is the BB it is claimed for"
+    assert np.linalg.norm(reg.carm_from_marker[hidden][:3, 3] - true[:3, 3]) < 0.5
+    mm, deg = axis_error(scene, reg.carm_from_drill, carm_from_drill)
+    assert mm < 1.0 and deg < 0.5
