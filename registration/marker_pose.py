@@ -469,7 +469,7 @@ def beam_image_px(view: CArmView, source_view: CArmView, position_carm_mm: NDArr
 
 
 def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, search_px: float = 60.0, tol_px: float = 2.5, min_bbs: int = 3,
-              slide_px: NDArray[np.float64] | None = None):
+              slide_px: NDArray[np.float64] | None = None, distortion_px: NDArray[np.float64] | None = None):
     """The design BBs (N, 3) and blob centres (N, 2) a pose explains in a view, after the best common shift.
 
     The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole
@@ -481,12 +481,14 @@ def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, sear
     slide_px : (2,) in ``view``'s own pixels: the farthest the pattern may slide along one image direction (px, in either sense), on
         top of ``search_px`` across it: the image in this view of the pose's depth uncertainty along another
         view's beam (an epipolar line). None: ``search_px`` in every direction.
+    distortion_px : (2,) the view's intensifier distortion (:meth:`.carm.CArmView.distorted_px`) the BBs are predicted
+        with; None: none (a flat panel, or none estimated).
     """
     if len(blobs_px) < min_bbs:
         return None
     per_px = REFERENCE_PIXEL_MM / float(view.pixel_spacing_mm[1])
     search_px, tol_px = search_px * per_px, tol_px * per_px
-    pred = view.project(apply(carm_from_marker, design_bbs_mm))
+    pred = view.distorted_px(view.project(apply(carm_from_marker, design_bbs_mm)), distortion_px)
     shifts = (blobs_px[None, :, :] - pred[:, None, :]).reshape(-1, 2)
     if slide_px is None:
         shifts = shifts[np.hypot(shifts[:, 0], shifts[:, 1]) <= search_px]

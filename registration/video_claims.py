@@ -177,7 +177,8 @@ def claim_from_video(video: VideoDetections, marker_poses: tuple[MarkerPose, ...
 
 
 def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: dict[int, NDArray[np.float64]], marker_set: MarkerSet, *,
-                        min_bbs: int = 3, camera_only: dict[int, NDArray[np.float64]] | None = None) -> dict[int, tuple]:
+                        min_bbs: int = 3, camera_only: dict[int, NDArray[np.float64]] | None = None,
+                        distortion: tuple = ()) -> dict[int, tuple]:
     """{marker id: ((view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...)}: the free blobs of the views where
     a marker of ``carm_from_marker`` ({id: (4, 4)}, a joint solve's poses) has no observations, claimed at the BBs those
     poses predict; only the markers that gained a view, and only the observations they gained.
@@ -193,6 +194,8 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
     ``camera_only``: {marker id: (4, 4)} of markers the camera sees that no view observes, each predicted through the
     solve's ``carm_from_drill`` and its tag's pose in the camera; each is claimed like the solve's markers but on
     ``TILTED_MIN_BBS`` or more BBs in a view (nothing else places it), after them, among the blobs they leave.
+    ``distortion``: ((view, (2,) px), ...) the intensifier distortion the solve estimated per view
+    (:attr:`.joint_solve.JointSolution.detector_distortion_px`): the BBs are predicted where it puts them.
     """
     by_id = {p.marker_id: p for p in marker_poses}
     views, non_disc = _view_blobs(marker_poses)
@@ -205,8 +208,8 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
     free_views = {k: (view, np.array([c for c in np.asarray(b, dtype=np.float64).reshape(-1, 2) if blob_key(c) not in taken.get(k, set())]).reshape(-1, 2))
                   for k, (view, b) in views.items()}
     poses = {i: t for i, t in carm_from_marker.items() if i in by_id}
-    claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs)
-    _tilted_claims(claims, views=free_views, by_id=by_id, poses=poses, marker_set=marker_set)
+    claims = _claims(np.eye(4), views=free_views, by_id=by_id, d_from_m=poses, marker_set=marker_set, min_bbs=min_bbs, distortion=distortion)
+    _tilted_claims(claims, views=free_views, by_id=by_id, poses=poses, marker_set=marker_set, distortion=distortion)
     # The camera's markers that no view observes: predicted through the solve, claimed among the blobs left.
     unseen = {i: np.asarray(t, dtype=np.float64) for i, t in (camera_only or {}).items()
               if i not in poses and not (i in by_id and by_id[i].observations) and i in marker_set.ids}
@@ -215,8 +218,8 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
         for per in claims.values():
             for view, _, img in per:
                 left[id(view)] = (view, _without(left[id(view)][1], img))
-        more = _claims(np.eye(4), views=left, by_id={}, d_from_m=unseen, marker_set=marker_set, min_bbs=max(min_bbs, TILTED_MIN_BBS))
-        _tilted_claims(more, views=left, by_id={}, poses=unseen, marker_set=marker_set)
+        more = _claims(np.eye(4), views=left, by_id={}, d_from_m=unseen, marker_set=marker_set, min_bbs=max(min_bbs, TILTED_MIN_BBS), distortion=distortion)
+        _tilted_claims(more, views=left, by_id={}, poses=unseen, marker_set=marker_set, distortion=distortion)
         claims.update(more)
     placed = {i: tuple((view, *placing_claim(obj, img, non_disc.get(id(view), set()))) for view, obj, img in per) for i, per in sorted(claims.items())}
     # A marker nothing else places keeps a view only on two or more BBs placed there (its non-disc blobs left out).
@@ -225,7 +228,7 @@ def claim_from_solution(marker_poses: tuple[MarkerPose, ...], carm_from_marker: 
 
 
 def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, MarkerPose], poses: dict[int, NDArray[np.float64]],
-                   marker_set: MarkerSet) -> None:
+                   marker_set: MarkerSet, distortion: tuple = ()) -> None:
     """Add to ``claims`` ({id: [(view, design (N, 3), blobs (N, 2))]}) the views' free blobs that a marker still without them
     explains at a tilt of its pose (up to ``TILT_SEARCH_DEG`` about either axis in its plane), at least
     ``TILTED_MIN_BBS`` of them: the largest count, the smallest tilt on a tie. A marker registered on one face-on view
@@ -255,13 +258,19 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
             slide = beam_image_px(view, next(iter(own.values())), poses[i][:3, 3], SLIDE_MM) if len(own) == 1 else None
             for a, b in tilts if slide is not None else tilts[1:]:
                 pose = poses[i] @ from_rotvec([a, b, 0.0])
-                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS, slide_px=slide)
+                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS, slide_px=slide,
+                                  distortion_px=_coefficients(distortion, view))
                 if found is not None and (best is None or len(found[0]) > len(best[0])):
                     best = found
             if best is None:
                 continue
             claims.setdefault(i, []).append((view, *best))
             free[k] = _without(free[k], best[1])
+
+
+def _coefficients(distortion: tuple, view) -> NDArray[np.float64] | None:
+    """The estimated distortion (2,) px of ``view`` in ``distortion`` ((view, coefficients), ...); None when it has none."""
+    return next((np.asarray(c, dtype=np.float64) for v, c in distortion if v is view), None)
 
 
 def with_claims(pose: MarkerPose, extra) -> MarkerPose:
@@ -331,7 +340,7 @@ def _count(claims: dict[int, list]) -> int:
 
 
 def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[int, MarkerPose], d_from_m: dict[int, NDArray[np.float64]],
-            marker_set: MarkerSet, min_bbs: int, depth_view=None) -> dict[int, list]:
+            marker_set: MarkerSet, min_bbs: int, depth_view=None, distortion: tuple = ()) -> dict[int, list]:
     """{marker id: [(view, design BB centres (N, 3) mm, claimed centres (N, 2) px), ...]}: the free blobs each view
     hands to the camera's markers predicted through ``carm_from_drill`` (4, 4), in views where they were not identified.
 
@@ -351,10 +360,12 @@ def _claims(carm_from_drill: NDArray[np.float64], *, views: dict, by_id: dict[in
                 if k in seen or len(free[k]) < min_bbs:
                     continue
                 design = marker_set.by_id(i).bb_centers_mm
-                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs)
+                coef = _coefficients(distortion, view)
+                found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=min_bbs, distortion_px=coef)
                 if found is None and depth_view is not None and k != id(depth_view):
                     slide = beam_image_px(view, depth_view, pose[:3, 3], SLIDE_MM)
-                    found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=max(min_bbs, SLID_MIN_BBS), slide_px=slide)
+                    found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=max(min_bbs, SLID_MIN_BBS), slide_px=slide,
+                                      distortion_px=coef)
                 if found is not None and (best is None or len(found[0]) > len(best[3])):
                     best = (i, k, view, *found)
         if best is None:

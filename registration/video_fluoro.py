@@ -206,7 +206,8 @@ def register_video_to_fluoro(
         # them) is predicted through the solve's drill and its tag, and claimed too.
         camera_only = {i: sol.carm_from_drill @ drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm)
                        for i in vids if i in marker_set.ids and i not in joinable}
-        again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set, camera_only=camera_only)
+        again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set, camera_only=camera_only,
+                                    distortion=sol.detector_distortion_px)
         if again:
             blobs_from = next(iter(every.values()))
             for i in sorted(set(again) - set(every)):

@@ -356,3 +356,28 @@ def test_a_tag_whose_marker_no_view_identified_joins_the_solve_by_its_claimed_bb
     assert np.linalg.norm(reg.carm_from_marker[hidden][:3, 3] - true[:3, 3]) < 0.5
     mm, deg = axis_error(scene, reg.carm_from_drill, carm_from_drill)
     assert mm < 1.0 and deg < 0.5
+
+
+def test_a_claim_in_an_intensifiers_view_predicts_the_bbs_where_its_estimated_distortion_puts_them():
+    """An image intensifier bends its image more towards the field's edge: across one marker its BBs move apart by
+    more than the claim's tolerance, which a common shift cannot take up. Predicted where the solve's estimate of
+    the view's distortion puts them, every BB is claimed by its own blob; predicted undistorted, fewer are."""
+    from drillnav.registration.carm import intensifier_shift_px
+    from drillnav.registration.video_claims import claim_from_solution
+
+    scene, pose, true, lateral_bbs = _ap_observed_marker()
+    lateral = scene.views["lateral"]
+    design = scene.marker_set.by_id(pose.marker_id).bb_centers_mm
+    unit = intensifier_shift_px(lateral_bbs, lateral.center_px, lateral.corner_radius_px, np.array([1.0, 1.0]))
+    spread = np.max(np.linalg.norm(unit - unit.mean(axis=0), axis=1))
+    coef = np.array([1.0, 1.0]) * 8.0 / spread  # the BBs' own shifts differ by up to 8 px about their mean
+    bent = lateral.distorted_px(lateral_bbs, coef)
+    blobs = tuple((v, np.concatenate([bent, b[len(lateral_bbs):]]) if v is lateral else b) for v, b in pose.view_blobs)
+    seen = replace(pose, view_blobs=blobs)
+    plain = claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set)
+    got = claim_from_solution((seen,), {pose.marker_id: true}, scene.marker_set, distortion=((lateral, coef),))
+    (view, obj, img), = got[pose.marker_id]
+    assert view is lateral and len(obj) == len(design)
+    index = [int(np.argmin(np.linalg.norm(design - b, axis=1))) for b in obj]
+    assert np.allclose(img, bent[index]), "each claimed blob is the image of the BB it is claimed for"
+    assert sum(len(o[1]) for o in plain.get(pose.marker_id, ())) < len(design)
