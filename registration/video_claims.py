@@ -256,10 +256,11 @@ def _tilted_claims(claims: dict[int, list], *, views: dict, by_id: dict[int, Mar
             # Observed in one view only, the pose's depth along that view's beam is its weakest part: slide along its image.
             own = {id(o[0]): o[0] for o in own_obs}
             slide = beam_image_px(view, next(iter(own.values())), poses[i][:3, 3], SLIDE_MM) if len(own) == 1 else None
+            coef = _coefficients(distortion, view)
             for a, b in tilts if slide is not None else tilts[1:]:
                 pose = poses[i] @ from_rotvec([a, b, 0.0])
                 found = claim_bbs(view, pose, design, free[k], search_px=SEARCH_PX, tol_px=TOL_PX, min_bbs=TILTED_MIN_BBS, slide_px=slide,
-                                  distortion_px=_coefficients(distortion, view))
+                                  distortion_px=coef)
                 if found is not None and (best is None or len(found[0]) > len(best[0])):
                     best = found
             if best is None:
