@@ -546,6 +546,17 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
 HAND_WRITTEN = "## What these figures do not show: failures the hard twin exposes (written by hand)"
 
 
+def with_marker_tilt(ap: argparse.ArgumentParser, degradations: Degradations, text: str | None) -> Degradations:
+    """``degradations`` with the markers' tilt ``--marker-tilt`` gives (LOW,HIGH deg; None: as they are); a value the twin
+    cannot use ends the command through ``ap`` with the reason."""
+    if text is None:
+        return degradations
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+        return dataclasses.replace(degradations, marker_tilt_deg=(lo, hi))
+    except ValueError as exc:
+        ap.error(f"--marker-tilt must be LOW,HIGH deg with 0 <= LOW <= HIGH < 80, got {text!r} ({exc})")
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=8)
@@ -601,12 +612,7 @@ def main() -> None:
             degradations = dataclasses.replace(degradations, ct_anatomy=False)
     else:
         degradations = Degradations.parse(args.degradations)
-    if args.marker_tilt is not None:
-        try:
-            lo, hi = (float(v) for v in args.marker_tilt.split(","))
-            degradations = dataclasses.replace(degradations, marker_tilt_deg=(lo, hi))
-        except ValueError as exc:
-            ap.error(f"--marker-tilt must be LOW,HIGH deg with 0 <= LOW <= HIGH < 80, got {args.marker_tilt!r} ({exc})")
+    degradations = with_marker_tilt(ap, degradations, args.marker_tilt)
     needs_ct = degradations.ct_anatomy or args.per_degradation
     patient = load_patient(args.ct) if needs_ct and (degradations.ct_anatomy or args.ct.exists()) else None
     t0 = time.perf_counter()

@@ -20,6 +20,7 @@ frame for the whole video loop (Table 4).
 ``--worker`` runs the frames as the node does instead: ``JointSolveWorker.track``, the periodic solve in a worker
 process, a frame that sees a weakly posed marker beside one tracked marker tracked and its solve asked of the worker.
 Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/live_path.py [--seeds 3 --first-seed 3000 --frames 30] [--worker]
+[--marker-tilt 0,10] (markers stuck flat on the skin).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import figure, report  # noqa: E402
-from accuracy import CT, _pairs, load_patient  # noqa: E402
+from accuracy import CT, _pairs, load_patient, with_marker_tilt  # noqa: E402
 
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
@@ -105,8 +106,11 @@ def main() -> None:
     ap.add_argument("--worker", action="store_true", help="as the node runs: the periodic solve in JointSolveWorker (each adopting frame "
                     "waits for its solve, so the figures do not hang on this machine's load; its wall time then includes that wait)")
     ap.add_argument("--save", type=Path, help="write every frame's figures (seed, pair, frame index added) to this JSON file")
+    ap.add_argument("--marker-tilt", default=None, help="as benchmarks/accuracy.py: the markers' tilt from the AP beam, LOW,HIGH deg (default "
+                    "the twin's 10,40; 0,10 for markers stuck flat on the skin, edge-on in a lateral view)")
     args = ap.parse_args()
     deg = Degradations.parse(args.degradations)
+    deg = with_marker_tilt(ap, deg, args.marker_tilt)
     patient = load_patient(args.ct) if deg.ct_anatomy else None
     frames: list[dict] = []
     per_pair: dict[str, list[dict]] = {}
@@ -161,7 +165,7 @@ def main() -> None:
         if len(a):
             figs += [figure(f"{kind} frames: wall p50", pct(a, 50), "ms", 96.2), figure(f"{kind} frames: wall max", float(a.max()), "ms", 96.2)]
     report("live_path", figs, seeds=f"{args.first_seed}-{args.first_seed + args.seeds - 1}", frames_per_sequence=args.frames,
-           degradations=deg.label(), mode="worker" if args.worker else "inline", load_average_1min=round(os.getloadavg()[0], 1),
+           degradations=deg.label(), marker_tilt_deg=list(deg.marker_tilt_deg), mode="worker" if args.worker else "inline", load_average_1min=round(os.getloadavg()[0], 1),
            note=("JointSolveWorker.track, the periodic solve in its worker process (adopting frames wait for it)" if args.worker else
                  "track_frame with the joint solve inline every JOINT_PERIOD_NS") + "; a shared 2-core machine")
 
