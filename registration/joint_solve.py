@@ -497,12 +497,19 @@ def project_distorted(view, points_carm_mm: NDArray[np.float64], distortion: tup
     return view.distorted_px(uv, coef)
 
 
+# Points on a marker's ring at which its shadow's distance from the BBs is taken (1.3 deg apart: 0.6 mm on a 24 mm ring).
+RING_CROWDING_POINTS = 256
+
+
 def _crowding(observations: dict, carm_from_marker: dict, marker_set: MarkerSet) -> dict[int, tuple[NDArray[np.float64], ...]]:
     """{marker id: per observation (view), (N,) each observed BB's crowding}: the distance from its projection to
-    the nearest other BB's (of any marker solved, observed or not) over the sum of their projected radii.
+    the nearest other BB's (of any marker solved, observed or not) over the sum of their projected radii, or to its
+    own marker's ring over its projected radius plus the wire's, whichever is smaller.
 
     Under about 1 the two BBs' shadows overlap or touch, and a blob detector returns them merged or each pulled
-    towards the other: a biased centre, not noise (a marker seen steeply in a lateral view lays its BBs close).
+    towards the other: a biased centre, not noise (a marker seen steeply in a lateral view lays its BBs close). Its
+    ring seen near edge-on runs past the BBs a few pixels off and pulls them alike (twin seed 10900, markers flat: a
+    lateral BB 1.65 px off its true image, 3.8-11 px from the wire, turned two markers 1 deg).
     """
     ids = list(observations)
     designs = {i: marker_set.by_id(i) for i in ids}
@@ -523,7 +530,16 @@ def _crowding(observations: dict, carm_from_marker: dict, marker_set: MarkerSet)
                 radii = every_r * intrinsics[0, 0] / depth
                 near = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2) / (radii[:, None] + radii[None, :])
                 np.fill_diagonal(near, np.inf)
-                per_view[id(view)] = near.min(axis=1)
+                crowd = near.min(axis=1)
+                # The marker's own ring: seen near edge-on its wire's shadow runs past the BBs and pulls them as a BB's does.
+                for m, j in enumerate(ids):
+                    ring = apply(carm_from_marker[j], designs[j].ring_points_mm(RING_CROWDING_POINTS))
+                    ring_px = view.project(ring)
+                    wire = 0.5 * designs[j].ring_wire_diameter_mm * intrinsics[0, 0] / (ring @ source_from_carm[2, :3] + source_from_carm[2, 3])
+                    rows_j = slice(starts[m], starts[m + 1])
+                    d = np.linalg.norm(centres[rows_j, None, :] - ring_px[None, :, :], axis=2) / (radii[rows_j, None] + wire[None, :])
+                    crowd[rows_j] = np.minimum(crowd[rows_j], d.min(axis=1))
+                per_view[id(view)] = crowd
             # Each observed BB is one of the design's (the rows of ``obj`` are design centres).
             index = np.argmin(np.linalg.norm(np.asarray(obj, dtype=np.float64)[:, None, :] - design_pts[None, :, :], axis=2), axis=1)
             rows.append(per_view[id(view)][starts[k] + index])
