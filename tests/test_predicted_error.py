@@ -202,7 +202,9 @@ def test_single_view_with_weak_geometry_is_flagged(scene):
     *_, reg, pe = _draw(scene, rng, 30.0, ["inlet"], full=True)  # ~10 px
     assert pe.angle90_deg > 3.0 and not pe.reliable
     mirrors = 0
-    for _ in range(4):
+    # Eight draws: the mirror stays open in about half of them (3-7 of 8 over three seeds of this rng), so four left
+    # the test to one draw sequence's luck.
+    for _ in range(8):
         *_, reg, pe = _draw(scene, rng, 60.0, ["inlet"], full=True)  # ~20 px
         assert not pe.reliable
         if reg.mirror_carm_from_drill is not None:
