@@ -557,6 +557,7 @@ def with_marker_tilt(ap: argparse.ArgumentParser, degradations: Degradations, te
     except ValueError as exc:
         ap.error(f"--marker-tilt must be LOW,HIGH deg with 0 <= LOW <= HIGH < 80, got {text!r} ({exc})")
 
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=8)
