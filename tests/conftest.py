@@ -1,6 +1,7 @@
-"""Shared test plumbing: ports the OS hands out, so two suites on one machine never meet."""
+"""Shared test plumbing: free ports the OS confirms, drawn at random, so two suites on one machine never meet."""
 
 import os
+import random
 import socket
 import sys
 from pathlib import Path
@@ -12,8 +13,34 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `drillnav` sets it (ser
 sys.path.insert(0, str(Path(__file__).parent))
 
 
+# Ports are drawn below the kernel's ephemeral range: a port bound to 0 comes from that range, and between its release
+# and the server's bind the kernel may hand it to any outgoing connection (a daemon's own zenoh or HTTP clients took
+# one once: a start-up test saw "Address already in use" on its DICOM port).
+FIRST_TEST_PORT = 20000
+
+
+def _ephemeral_low() -> int:
+    """The lowest port the kernel hands to outgoing connections (Linux's ip_local_port_range; 32768 where unknown)."""
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (bound to 0, read back, released)."""
+    """A TCP port on 127.0.0.1 that was free a moment ago (bound, released), drawn at random below the ephemeral
+    range so that no outgoing connection takes it before the server binds it; bound to 0 where that range leaves
+    no room."""
+    draw = random.SystemRandom()
+    low = _ephemeral_low()
+    for _ in range(200 if low - FIRST_TEST_PORT >= 1000 else 0):
+        port = draw.randrange(FIRST_TEST_PORT, low)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -62,7 +89,7 @@ COMPUTE_MODULES = frozenset({
     "test_pki.py", "test_predicted_error.py", "test_real_anatomy_background.py", "test_scene.py", "test_soak_analysis.py", "test_symmetric_pairing.py",
     "test_tag_border.py", "test_tag_detection.py", "test_tag_hypotheses.py", "test_tracked_markers.py", "test_tracking_covariance.py", "test_tag_recovery.py", "test_tag_search.py", "test_tag_square_fit.py", "test_twin_aim.py", "test_twin_degradations.py", "test_twin_detector.py", "test_video_claims.py",
     "test_ring_split.py", "test_lone_marker_mirror.py", "test_tag_misread.py", "test_tag_displaced_corner.py", "test_tag_beam_slide.py",
-    "test_named_second_view.py", "test_named_alone.py", "test_blob_split.py", "test_ring_crowding.py",
+    "test_named_second_view.py", "test_named_alone.py", "test_blob_split.py", "test_ring_crowding.py", "test_free_port.py",
 })
 
 
