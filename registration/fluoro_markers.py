@@ -16,7 +16,7 @@ own.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -100,6 +100,9 @@ class FluoroDetections:
     # Every BB-like blob of the view, identified or not: a marker posed from another view can claim its
     # BBs here by projection when its own ring could not identify it (edge-on, overlapping, cut).
     blobs: tuple[DetectedBB, ...] = ()
+    # The log image (H, W) the detections were made on (:func:`detect_in_view` keeps it): an edge-on marker posed
+    # through other views is measured across its ring's stroke there (:mod:`.edge_on_ring`). None: not kept.
+    image_log: NDArray[np.float32] | None = field(default=None, repr=False, compare=False)
 
     def by_id(self) -> dict[int, DetectedMarker]:
         return {m.marker_id: m for m in self.markers}
@@ -227,8 +230,10 @@ def detect_markers(
 
 def detect_in_view(image_log: NDArray[np.float32], view: CArmView, marker_set: MarkerSet) -> FluoroDetections:
     """:func:`detect_markers` in one view as the product runs it: at the view's own pixel size, with the markers'
-    magnifications that its geometry allows (:func:`magnification_range`). Every caller with a view uses this."""
-    return detect_markers(image_log, marker_set, pixel_spacing_mm=float(view.pixel_spacing_mm[1]), magnification_range=magnification_range(view))
+    magnifications that its geometry allows (:func:`magnification_range`), the image kept with them
+    (:attr:`FluoroDetections.image_log`). Every caller with a view uses this."""
+    found = detect_markers(image_log, marker_set, pixel_spacing_mm=float(view.pixel_spacing_mm[1]), magnification_range=magnification_range(view))
+    return replace(found, image_log=image_log)
 
 
 def _coarsened(found: FluoroDetections, factor: int) -> FluoroDetections:

@@ -113,6 +113,9 @@ BB_SCALE_SIGMA_PX = 0.24
 # twin's truth (every fluoroscopy degradation but the intensifier's, seeds 6100-6102, every pair: RMS 3.55 px
 # under 0.8, 1.23 px at 1.0-1.2, 0.73 px at 1.2-1.5, 0.48-0.56 px beyond, less the 0.5 px of the rest).
 CROWDED_BB_PX = (np.array([0.8, 1.1, 1.35, 1.6]), np.array([3.5, 1.1, 0.5, 0.0]))
+# The noise (px, 1 sigma) of an edge-on ring's stroke measured across its line (:mod:`.edge_on_ring`), from the
+# measurements' errors against the twin's truth.
+STROKE_SIGMA_PX = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -191,6 +194,8 @@ def joint_solve(
     corner_extra_px: dict[int, float] | None = None,
     fluoro_only: dict[int, tuple[tuple, NDArray[np.float64]]] | None = None,
     give_up_above_chi2: float | None = None,
+    strokes: dict[int, tuple] | None = None,
+    stroke_sigma_px: float = STROKE_SIGMA_PX,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
 
@@ -224,6 +229,10 @@ def joint_solve(
     ``give_up_above_chi2``: when the first plain fit is not clean and its chi-square exceeds this, that fit is
     returned as it is, with no robust rounds, rejection or vote (a caller that only wants a solution fitting about as
     well as one it has: the mirror start of a single view, :func:`.video_fluoro._settle_constellation_mirror`).
+    ``strokes``: {marker id: ((CArmView, anchors (K, 3) mm in the marker frame, normals (K, 2), offsets (K,) px), ...)}:
+    where an edge-on marker's ring stroke lies across its line (:func:`.edge_on_ring.measure_ring_stroke`), each
+    anchor's image along its normal, with ``stroke_sigma_px`` noise; they count in no marker's chi, so they reject
+    no marker.
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -249,8 +258,10 @@ def joint_solve(
     if not all(np.isfinite(v) for v in corner_extra.values()):
         raise ValueError(f"a tag's extra corner noise must be finite, got {corner_extra}")
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
+    if not stroke_sigma_px > 0:
+        raise ValueError(f"the stroke sigma must be > 0 px, got {stroke_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, anchors)
+            crowded_bbs, corner_extra, anchors, dict(strokes or {}), float(stroke_sigma_px))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
@@ -615,7 +626,7 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], anchors: dict, *, loss: str) -> JointSolution:
+           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, *, loss: str) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
     m = len(ids)
@@ -665,6 +676,22 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     c_obj, c_img, c_mk = c_obj_all[c_sel], np.concatenate(c_groups), c_mk_all[c_sel]
     c_extra = [np.full(int(keep.sum()), corner_extra.get(i, 0.0)) for i, keep in zip(ids, c_keep)] if any(i in corner_extra for i in ids) else None
     wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra)
+    # Ring strokes of edge-on markers (the camera's markers only): one row each, an anchor's image along a normal.
+    s_rows = [(k, view, np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1))
+              for k, i in enumerate(ids) for view, a, nv, o in strokes.get(i, ())]
+    n_s = sum(len(r[4]) for r in s_rows)
+    if n_s:
+        s_obj = np.concatenate([r[2] for r in s_rows])
+        s_nrm = np.concatenate([r[3] for r in s_rows])
+        s_off = np.concatenate([r[4] for r in s_rows])
+        s_mk = np.concatenate([np.full(len(r[4]), r[0]) for r in s_rows])
+        s_pa = np.concatenate([np.repeat(r[1].projection_matrix[None], len(r[4]), axis=0) for r in s_rows])
+        s_dv = np.concatenate([np.full(len(r[4]), next((j for j, v in enumerate(dist_views) if v is r[1]), -1)) for r in s_rows])
+        s_center = np.concatenate([np.repeat(r[1].center_px[None], len(r[4]), axis=0) for r in s_rows])
+        s_corner_r = np.concatenate([np.full(len(r[4]), r[1].corner_radius_px) for r in s_rows])
+        s_has = s_dv >= 0
+    else:
+        s_mk = np.zeros(0, dtype=np.int64)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
@@ -702,7 +729,16 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             return np.stack([u, v], axis=-1)
         rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
         prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
-        return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
+        if not n_s:
+            return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
+        ps = np.einsum("pnij,nj->pni", rot_m[:, s_mk], s_obj) + t_m[:, s_mk]
+        hs = np.einsum("nij,pnj->pni", s_pa[:, :, :3], ps) + s_pa[:, :, 3]
+        uvs = hs[..., :2] / hs[..., 2:3]
+        if n_dv and np.any(s_has):
+            coef_s = xs[:, i_dist:].reshape(n, n_dv, 2)[:, s_dv[s_has]]
+            uvs[:, s_has] += intensifier_shift_px(uvs[:, s_has], s_center[s_has], s_corner_r[s_has][:, None], coef_s)
+        rs = (np.sum(uvs * s_nrm, axis=-1) - s_off) / stroke_sigma_px
+        return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), rs, prior], axis=1)
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
     # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at
@@ -710,7 +746,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
     # sparse differences, which evaluate the groups one call at a time).
     h = 1e-6
-    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), np.full(N_INTRINSICS + 2 * n_dv, -1)])
+    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), s_mk, np.full(N_INTRINSICS + 2 * n_dv, -1)])
     in_marker = np.nonzero(row_marker >= 0)[0]
     n_glob = N_INTRINSICS + 2 * n_dv  # intrinsics and the views' distortion: one column each
     steps = np.zeros((6 + n_glob + 6, n_par))

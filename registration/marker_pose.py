@@ -65,6 +65,10 @@ class MarkerPose:
     # (:attr:`.fluoro_markers.DetectedBB.places` False: merged with another BB's, a K-wire's or the ring's shadow). A
     # claim counts them; its observations leave them out (:func:`placing_claim`).
     non_disc_blobs: tuple = ()
+    # (view, log image (H, W)) per view register_markers was given whose detections kept their image
+    # (:attr:`.fluoro_markers.FluoroDetections.image_log`): an edge-on marker's ring stroke is measured there
+    # (:mod:`.edge_on_ring`).
+    view_images: tuple = ()
     # Posed from rings whose BB pattern matched this marker only at the looser cost a second witness allows
     # (:data:`.fluoro_markers.CORROBORATED_MAX_COST_MM`): its identity stands where the camera sees its tag, and
     # nowhere else (:func:`.video_fluoro.register_video_to_fluoro` leaves it out otherwise).
@@ -376,7 +380,8 @@ def register_markers(
     free = [np.array([b.center_px for b in det.blobs if blob_key(b.center_px) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
     non_disc = [{blob_key(b.center_px) for b in det.blobs if not b.places and blob_key(b.center_px) not in claimed[k]} for k, det in enumerate(detections)]
     blobs = dict(view_blobs=tuple(zip(views, free)),
-                 non_disc_blobs=tuple((v, np.array(sorted(n)).reshape(-1, 2)) for v, n in zip(views, non_disc)))
+                 non_disc_blobs=tuple((v, np.array(sorted(n)).reshape(-1, 2)) for v, n in zip(views, non_disc)),
+                 view_images=tuple((v, det.image_log) for det, v in zip(detections, views) if det.image_log is not None))
     if len(views) < 2:
         return tuple(replace(p, **blobs) for p in poses)
     # A marker identified in one view but not in another (edge-on in a lateral view, rings overlapping)

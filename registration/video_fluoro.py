@@ -32,7 +32,8 @@ from scipy.spatial.transform import Rotation
 from .camera import PinholeCamera
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, JointSolution, joint_solve, square_misfit_noise_px
+from .edge_on_ring import measure_ring_stroke
+from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, STROKE_SIGMA_PX, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose
 from .markers import MarkerSet
@@ -224,6 +225,9 @@ def register_video_to_fluoro(
                              min_markers=min(HORN_MIN_MARKERS, len(joinable)))
             solve["observations"] = {i: every[i].observations for i in joinable}
             sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
+        # An edge-on marker (a lateral view, markers on the anterior skin) shows few BBs or none, but its ring's stroke
+        # across its line fixes its depth along the other views' beams: measured at the solve's poses, solved again.
+        sol = _with_strokes(sol, every, solve, carm_from_marker, marker_set)
         alternative = None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
@@ -260,6 +264,63 @@ def _bb_count(pose: MarkerPose) -> int:
 
 # Below this many markers in common, no point-based (Horn) fit and no outlier rejection: two cannot outvote each other.
 HORN_MIN_MARKERS = 3
+# A view where a used marker shows fewer BBs than this measures its ring's stroke when it is edge-on there; the
+# strokes are measured again at each round's poses (the predicted profile closer to the image's), this many rounds.
+STROKE_BELOW_BBS = 4
+STROKE_ROUNDS = 2
+# A stroke farther than this (in its sigmas) from where the solve with it puts its anchor is left out, and the
+# round solved again without it (a neighbour's stroke or a K-wire matched instead).
+STROKE_OUTLIER_CHI = 4.0
+
+
+def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict, starts: dict[int, NDArray[np.float64]],
+                  marker_set: MarkerSet) -> JointSolution:
+    """``sol`` solved again with the ring strokes (:func:`.edge_on_ring.measure_ring_stroke`) of its markers in the views
+    where they show fewer than ``STROKE_BELOW_BBS`` BBs; ``solve`` (joint_solve's other arguments) takes the strokes, so
+    later solves keep them. ``sol`` as it is where the poses carry no images or no stroke is found."""
+    images = next((p.view_images for p in every.values() if p.view_images), ())
+    if len(images) < 2:
+        return sol
+    for _ in range(STROKE_ROUNDS):
+        strokes: dict[int, list] = {}
+        for i in sol.used_ids:
+            shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
+            for view, image in images:
+                if shown.get(id(view), 0) >= STROKE_BELOW_BBS:
+                    continue
+                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], marker_set.by_id(i))
+                if found:
+                    strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
+                                                      np.array([st.offset_px for st in found])))
+        if not strokes:
+            return sol
+        while True:
+            again = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker}, **{**solve, "strokes": strokes})
+            far = _far_strokes(again, strokes)
+            if not far:
+                break
+            strokes = {i: [s for k, s in enumerate(per) if (i, k) not in far] for i, per in strokes.items()}
+            strokes = {i: per for i, per in strokes.items() if per}
+            if not strokes:
+                return sol
+        solve["strokes"] = strokes
+        sol = again
+    return sol
+
+
+def _far_strokes(sol: JointSolution, strokes: dict[int, list]) -> set[tuple[int, int]]:
+    """(marker id, index in its list) of the strokes whose anchors lie over ``STROKE_OUTLIER_CHI`` sigmas from where
+    ``sol`` puts them (a marker the solve rejected: all of its strokes)."""
+    far = set()
+    for i, per in strokes.items():
+        for k, (view, anchors, normals, offsets) in enumerate(per):
+            if i not in sol.carm_from_marker:
+                far.add((i, k))
+                continue
+            uv = project_distorted(view, apply(sol.carm_from_marker[i], anchors), sol.detector_distortion_px)
+            if np.any(np.abs(np.sum(uv * normals, axis=1) - offsets) > STROKE_OUTLIER_CHI * STROKE_SIGMA_PX):
+                far.add((i, k))
+    return far
 
 
 def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.float64]:

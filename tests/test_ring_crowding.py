@@ -14,13 +14,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import operating_room_scene  # noqa: E402  (tests/: the study's scene of a seed and pair)
+from twin_images import study_shot  # noqa: E402  (tests/: the study's scene, marker poses and shot)
 
 from drillnav.drivers.sim.degradations import Degradations
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
-from drillnav.registration.fluoro_markers import detect_in_view
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene
 from drillnav.registration.joint_solve import _crowding, crowded_bb_sigma_px
-from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.markers import MarkerSet
 
 
@@ -51,12 +49,7 @@ def test_two_flat_markers_are_not_turned_about_the_line_joining_them_by_bbs_thei
     shadows; charged as plain noise they turned the pair 1 deg about the line joining them, the axis 3.20 mm off."""
     import accuracy
 
-    scene, k = operating_room_scene(SEED, "ap+lateral", marker_tilt_deg=(0.0, 10.0))
-    image_rng = np.random.default_rng([SEED, k, 1])
-    names = list(scene.views)
-    dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in names}
-    poses = tuple(register_markers([dets[n] for n in names], [scene.views[n] for n in names], scene.marker_set))
-    pose, video, image = accuracy.camera_shots(scene, seed=SEED, k=k, poses=POSE + 1)[POSE]
+    scene, poses, pose, video, image = study_shot(SEED, "ap+lateral", POSE, marker_tilt_deg=(0.0, 10.0))
     video, reg = accuracy._register(scene, image, video, poses, joint=True)
     assert tuple(reg.used_ids) == (35, 42), reg.used_ids
     entry = scene.corridor_entry_carm_mm

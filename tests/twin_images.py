@@ -137,3 +137,22 @@ def operating_room_scene(seed: int, pair: str, *, marker_tilt_deg: tuple[float, 
         degradations = replace(degradations, marker_tilt_deg=marker_tilt_deg)
     return accuracy.make_scene(seed=seed, views=pairs[k][1], render=False, degradations=degradations, voxel_anatomy=patient,
                                **scene_args), k
+
+
+def study_shot(seed: int, pair: str, pose_index: int, *, marker_tilt_deg: tuple[float, float] | None = None):
+    """The accuracy study's fluoroscopy marker poses and camera shot of ``seed``, view ``pair`` and drill pose
+    ``pose_index``: (scene, marker poses, carm_from_drill of the shot, video detections, camera image), as
+    ``accuracy.py`` makes them (:func:`operating_room_scene`; skips where the CT is absent)."""
+    import accuracy
+
+    from drillnav.drivers.sim.scene import render_fluoro
+    from drillnav.registration.fluoro_markers import detect_in_view
+    from drillnav.registration.marker_pose import register_markers
+
+    scene, k = operating_room_scene(seed, pair, marker_tilt_deg=marker_tilt_deg)
+    image_rng = np.random.default_rng([seed, k, 1])
+    names = list(scene.views)
+    dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in names}
+    poses = tuple(register_markers([dets[n] for n in names], [scene.views[n] for n in names], scene.marker_set))
+    pose, video, image = accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index]
+    return scene, poses, pose, video, image

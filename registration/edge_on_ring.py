@@ -1,0 +1,164 @@
+"""Where an edge-on marker lies across its own line: the wire ring's shadow seen side-on, measured in the image.
+
+A marker stuck on the anterior skin is edge-on in a lateral view: its BBs merge along one line and its ring is a
+thin ellipse, a bright stroke about twice the ring's radius long. Its BBs are then seldom identified one by one,
+yet the stroke's position across its own length is plain in the image, and it is the marker's depth along the
+other view's beam, the part a single face-on view fixes worst. Given a pose that already places the marker within
+a few millimetres (a joint solve over the other views and the camera), the image is sampled across the predicted
+stroke, each half of it on its own, and the profile is slid against the marker's own predicted profile (its wire
+and BBs, each weighted by the length of the ray through it): the shift that matches best, refined to a fraction
+of a pixel, is how far the stroke lies across its predicted line. Two halves give two such offsets, which must
+agree: the line's position and its angle in the image.
+
+Pure math: numpy, scipy and OpenCV's sampling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from .carm import CArmView
+from .markers import MarkerDesign
+from .transforms import apply
+
+__all__ = ["RingStroke", "measure_ring_stroke", "EDGE_ON_STROKE_RATIO"]
+
+# A ring whose projected ellipse is flatter than this (minor over major half-axis) is measured as a stroke. Flatter
+# than fluoro_markers' EDGE_ON_MINOR_RATIO (0.12), the detector gives up on its pattern; the stroke is still sharp.
+EDGE_ON_STROKE_RATIO = 0.15
+# How far across its line the stroke is looked for (px, either sense): a marker placed by one face-on view and the
+# camera can sit several millimetres off along that view's beam.
+SEARCH_PX = 30.0
+# The profile's step across the line (px) and the parabola's refinement below it.
+STEP_PX = 0.25
+TEMPLATE_EVERY = 3
+# The predicted profile's dark margin either side of the stroke, in units of the stroke's half-width.
+TEMPLATE_MARGIN = 1.0
+# A half-stroke is taken when its profile matches the predicted one this well (normalised correlation) and no
+# other shift farther than MIN_SEPARATION_PX matches within SECOND_PEAK_RATIO of it (a neighbour's stroke, a K-wire).
+MIN_CORRELATION = 0.7
+SECOND_PEAK_RATIO = 0.85
+MIN_SEPARATION_PX = 4.0
+# The two halves' shifts may differ by this much (px): the predicted line's turn in the image (a degree turns a
+# 100 px half-stroke's middle by under 2 px).
+HALF_AGREEMENT_PX = 3.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class RingStroke:
+    """One half of an edge-on ring's stroke, measured across its line.
+
+    anchor_mm : (3,) the point in the marker frame whose image the measurement places (the middle of the half).
+    normal : (2,) the unit image direction across the stroke.
+    offset_px : where the anchor's image lies along ``normal`` (``normal @ uv``), as measured.
+    predicted_px : the same at the pose the stroke was looked for from.
+    correlation : the normalised correlation of the measured and predicted profiles at the match.
+    """
+
+    anchor_mm: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    offset_px: float
+    predicted_px: float
+    correlation: float
+
+
+def _profile_template(view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, grid_px: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(T, S) the marker's predicted shadow on the grid (T, S, 2) px: each ray's path length (px at the marker) through
+    the ring's wire and the BBs."""
+    ring = apply(carm_from_marker, design.ring_points_mm(2048))
+    ring_px = view.project(ring)
+    scale = float(view.magnification(carm_from_marker[:3, 3][None])[0]) / float(view.pixel_spacing_mm[1])  # px per mm at the marker
+    pts = grid_px.reshape(-1, 2)
+    d, _ = cKDTree(ring_px).query(pts)
+    rw = 0.5 * design.ring_wire_diameter_mm * scale
+    out = 2.0 * np.sqrt(np.maximum(rw * rw - d * d, 0.0))
+    bb_px = view.project(apply(carm_from_marker, design.bb_centers_mm))
+    for c, dia in zip(bb_px, design.bb_diameters_mm):
+        r = 0.5 * dia * scale
+        q = np.sum((pts - c) ** 2, axis=1)
+        out += 2.0 * np.sqrt(np.maximum(r * r - q, 0.0))
+    return out.reshape(grid_px.shape[:2])
+
+
+def _ncc(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> NDArray[np.float64]:
+    """Normalised correlation of ``tmpl`` (W,) with every window of ``data`` (W + 2 steps,), shifts -steps..steps."""
+    w = len(tmpl)
+    t = tmpl - tmpl.mean()
+    tn = np.linalg.norm(t)
+    win = np.lib.stride_tricks.sliding_window_view(data, w)[: 2 * steps + 1]
+    win = win - win.mean(axis=1, keepdims=True)
+    return (win @ t) / np.maximum(np.linalg.norm(win, axis=1) * tn, 1e-12)
+
+
+def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, *,
+                        search_px: float = SEARCH_PX) -> tuple[RingStroke, ...]:
+    """The halves of ``design``'s ring stroke that the image (log attenuation, bright where dense) shows near where
+    ``carm_from_marker`` (4, 4) puts it: both halves, each inside the image and matched unambiguously, their shifts
+    within ``HALF_AGREEMENT_PX``; () otherwise, or where the ring is not edge-on (:data:`EDGE_ON_STROKE_RATIO`)."""
+    ring_mm = design.ring_points_mm(256)
+    ring_px = view.project(apply(carm_from_marker, ring_mm))
+    centre = ring_px.mean(axis=0)
+    _, sv, vt = np.linalg.svd(ring_px - centre, full_matrices=False)
+    along = vt[0]
+    normal = np.array([-along[1], along[0]])
+    half_len = float(np.max(np.abs((ring_px - centre) @ along)))
+    half_wid = float(np.max(np.abs((ring_px - centre) @ normal)))
+    if half_len <= 0 or half_wid > EDGE_ON_STROKE_RATIO * half_len:
+        return ()
+    rows, cols = image_log.shape
+    reach = half_wid + 0.5 * float(np.max(design.bb_diameters_mm)) * half_len / design.ring_radius_mm + 3.0
+    steps = int(round(search_px / STEP_PX))
+    # The predicted profile spans the stroke and as much again either side, where it is dark: a bright band beside the
+    # stroke (a retractor's blade along a marker stuck flat) must count against a match there, not for it; matched on
+    # the stroke's own width, seed 11401's lateral view took such a band 13 px aside for marker 37's stroke.
+    span = (1.0 + TEMPLATE_MARGIN) * reach
+    s_tmpl = np.arange(-span, span + 1e-9, STEP_PX)
+    s_data = np.arange(-span - steps * STEP_PX, span + steps * STEP_PX + 1e-9, STEP_PX)[: len(s_tmpl) + 2 * steps]
+    image = np.ascontiguousarray(image_log, dtype=np.float32)
+    out = []
+    for sign in (-1.0, 1.0):
+        # Each half, its ends left out (where the wire turns across the line).
+        t = sign * np.arange(0.1 * half_len, 0.9 * half_len, 1.0)
+        grid_t = centre[None, None] + t[:, None, None] * along
+        grid = grid_t + s_data[None, :, None] * normal
+        corners = grid[[0, 0, -1, -1], [0, -1, 0, -1]]
+        if np.any(corners < 1) or np.any(corners[:, 0] > cols - 2) or np.any(corners[:, 1] > rows - 2):
+            continue  # this half lies partly outside the image
+        # The predicted profile, smooth along the stroke, from every third row of the samples'.
+        tmpl = _profile_template(view, carm_from_marker, design, grid_t[::TEMPLATE_EVERY] + s_tmpl[None, :, None] * normal).mean(axis=0)
+        samples = cv2.remap(image, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32), cv2.INTER_LINEAR)
+        data = samples.astype(np.float64).mean(axis=0)
+        ncc = _ncc(data, tmpl, steps)
+        k = int(np.argmax(ncc))
+        best = float(ncc[k])
+        shifts = (np.arange(len(ncc)) - steps) * STEP_PX
+        far = np.abs(shifts - shifts[k]) > MIN_SEPARATION_PX
+        peaks = far & (ncc >= np.roll(ncc, 1)) & (ncc >= np.roll(ncc, -1))
+        if best < MIN_CORRELATION or k in (0, len(ncc) - 1) or (np.any(peaks) and float(ncc[peaks].max()) > SECOND_PEAK_RATIO * best):
+            continue
+        a, b, c = ncc[k - 1], ncc[k], ncc[k + 1]
+        frac = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
+        shift = (k - steps + float(np.clip(frac, -0.5, 0.5))) * STEP_PX
+        # The half's middle, as a point of the marker: the ring's in-plane point nearest its image.
+        anchor = _anchor_mm(ring_mm, ring_px, sign * along, design)
+        predicted = float(normal @ view.project(apply(carm_from_marker, anchor[None]))[0])
+        out.append(RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=predicted + shift, predicted_px=predicted, correlation=best))
+    # Both halves, where they agree: one half alone, or two that disagree, matched something else at least once (a
+    # neighbour's stroke, the other side of a ring's thin ellipse, a K-wire), tens of pixels off on the twin.
+    shifts = [st.offset_px - st.predicted_px for st in out]
+    if len(out) != 2 or abs(shifts[0] - shifts[1]) > HALF_AGREEMENT_PX:
+        return ()
+    return tuple(out)
+
+
+def _anchor_mm(ring_mm: NDArray[np.float64], ring_px: NDArray[np.float64], toward: NDArray[np.float64], design: MarkerDesign) -> NDArray[np.float64]:
+    """The point (3,) of the marker's plane half way from the ring's centre to the ring's end whose image lies
+    farthest along ``toward`` (2,): the middle of that half of the stroke."""
+    k = int(np.argmax(ring_px @ toward))
+    c = np.asarray(design.ring_center_mm, dtype=np.float64)
+    return c + 0.5 * (ring_mm[k] - c)
