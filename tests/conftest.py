@@ -1,7 +1,6 @@
-"""Shared test plumbing: free ports the OS confirms, drawn at random, so two suites on one machine never meet."""
+"""Shared test plumbing: ports the OS hands out, so two suites on one machine never meet."""
 
 import os
-import random
 import socket
 import sys
 from pathlib import Path
@@ -13,34 +12,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `drillnav` sets it (ser
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-# Ports are drawn below the kernel's ephemeral range: a port bound to 0 comes from that range, and between its release
-# and the server's bind the kernel may hand it to any outgoing connection (a daemon's own zenoh or HTTP clients took
-# one once: a start-up test saw "Address already in use" on its DICOM port).
-FIRST_TEST_PORT = 20000
-
-
-def _ephemeral_low() -> int:
-    """The lowest port the kernel hands to outgoing connections (Linux's ip_local_port_range; 32768 where unknown)."""
-    try:
-        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return 32768
-
-
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (bound, released), drawn at random below the ephemeral
-    range so that no outgoing connection takes it before the server binds it; bound to 0 where that range leaves
-    no room."""
-    draw = random.SystemRandom()
-    low = _ephemeral_low()
-    for _ in range(200 if low - FIRST_TEST_PORT >= 1000 else 0):
-        port = draw.randrange(FIRST_TEST_PORT, low)
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
+    """A TCP port on 127.0.0.1 that was free a moment ago (bound to 0, read back, released)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
