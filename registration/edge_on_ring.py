@@ -103,7 +103,7 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
     ring_mm = design.ring_points_mm(256)
     ring_px = view.project(apply(carm_from_marker, ring_mm))
     centre = ring_px.mean(axis=0)
-    _, sv, vt = np.linalg.svd(ring_px - centre, full_matrices=False)
+    _, _, vt = np.linalg.svd(ring_px - centre, full_matrices=False)
     along = vt[0]
     normal = np.array([-along[1], along[0]])
     half_len = float(np.max(np.abs((ring_px - centre) @ along)))
@@ -114,8 +114,8 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
     reach = half_wid + 0.5 * float(np.max(design.bb_diameters_mm)) * half_len / design.ring_radius_mm + 3.0
     steps = int(round(search_px / STEP_PX))
     # The predicted profile spans the stroke and as much again either side, where it is dark: a bright band beside the
-    # stroke (a retractor's blade along a marker stuck flat) must count against a match there, not for it; matched on
-    # the stroke's own width, seed 11401's lateral view took such a band 13 px aside for marker 37's stroke.
+    # stroke must count against a match there, not for it; matched on the stroke's own width, seed 11401's lateral
+    # view (markers flat) took a band some 40 px wide beside marker 37's stroke, 13 px aside, for the stroke.
     span = (1.0 + TEMPLATE_MARGIN) * reach
     s_tmpl = np.arange(-span, span + 1e-9, STEP_PX)
     s_data = np.arange(-span - steps * STEP_PX, span + steps * STEP_PX + 1e-9, STEP_PX)[: len(s_tmpl) + 2 * steps]
@@ -129,7 +129,7 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
         corners = grid[[0, 0, -1, -1], [0, -1, 0, -1]]
         if np.any(corners < 1) or np.any(corners[:, 0] > cols - 2) or np.any(corners[:, 1] > rows - 2):
             continue  # this half lies partly outside the image
-        # The predicted profile, smooth along the stroke, from every third row of the samples'.
+        # The predicted profile, smooth along the stroke: every third row of the sampled grid is enough.
         tmpl = _profile_template(view, carm_from_marker, design, grid_t[::TEMPLATE_EVERY] + s_tmpl[None, :, None] * normal).mean(axis=0)
         samples = cv2.remap(image, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32), cv2.INTER_LINEAR)
         data = samples.astype(np.float64).mean(axis=0)
@@ -144,7 +144,7 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
         a, b, c = ncc[k - 1], ncc[k], ncc[k + 1]
         frac = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
         shift = (k - steps + float(np.clip(frac, -0.5, 0.5))) * STEP_PX
-        # The half's middle, as a point of the marker: the ring's in-plane point nearest its image.
+        # The half's middle, as a point of the marker: half way from the ring's centre to that end of the stroke.
         anchor = _anchor_mm(ring_mm, ring_px, sign * along, design)
         predicted = float(normal @ view.project(apply(carm_from_marker, anchor[None]))[0])
         out.append(RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=predicted + shift, predicted_px=predicted, correlation=best))

@@ -113,8 +113,9 @@ BB_SCALE_SIGMA_PX = 0.24
 # twin's truth (every fluoroscopy degradation but the intensifier's, seeds 6100-6102, every pair: RMS 3.55 px
 # under 0.8, 1.23 px at 1.0-1.2, 0.73 px at 1.2-1.5, 0.48-0.56 px beyond, less the 0.5 px of the rest).
 CROWDED_BB_PX = (np.array([0.8, 1.1, 1.35, 1.6]), np.array([3.5, 1.1, 0.5, 0.0]))
-# The noise (px, 1 sigma) of an edge-on ring's stroke measured across its line (:mod:`.edge_on_ring`), from the
-# measurements' errors against the twin's truth.
+# The noise (px, 1 sigma) of an edge-on ring's stroke measured across its line (:mod:`.edge_on_ring`): against the
+# twin's truth, 26 half-strokes of 13 seeds' flat lateral views, from poses 3 mm off along the AP beam and 1 deg
+# askew, were off by 0.71 px median, 1.17 px at the 90th percentile, 1.87 px at most.
 STROKE_SIGMA_PX = 1.0
 
 
