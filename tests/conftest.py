@@ -12,11 +12,20 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `drillnav` sets it (ser
 sys.path.insert(0, str(Path(__file__).parent))
 
 
+_HANDED_OUT: set[int] = set()  # every port free_port gave this process
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (bound to 0, read back, released)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 that was free a moment ago (bound to 0, read back, released), never one it gave this
+    process before: the OS may hand the same port out again once it is released, and a test that draws several (one
+    per server, seven daemons at once in test_serve_lifecycle) must not get one twice."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
 
 
 def free_endpoint() -> str:
