@@ -471,7 +471,8 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
                                             used_before=0) if named else None
         if got is None:
             raise
-        return got
+        return _recovered_again(image, *got, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set, joint=joint,
+                                search=search)
     more, expected, weak = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
                                               joint=joint, search=search)
     left = set(expected) - {m.marker_id for m in more.markers}
@@ -496,16 +497,33 @@ def register_with_recovery(image: NDArray[np.uint8], video: VideoDetections, *, 
         if len(reg.used_ids) > before:
             # A registration that gained markers predicts the tags still missing better than the one it started from (on
             # one marker, its mirror open: 5-38 px off on the operating-room twin, then 1-2 px): they are looked for once more.
-            again, _, _ = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
-                                             joint=joint, search=search)
-            if again is not video:
-                video, reg = again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
+            video, reg = _recovered_again(image, video, reg, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
+                                          joint=joint, search=search)
     if named and (len(reg.used_ids) < NAMED_BELOW_MARKERS or _in_one_view_of_two(reg, video, every=every, locator=locator)):
         got = _registration_with_named_tags(image, video, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set,
                                             used_before=len(reg.used_ids))
         if got is not None:
-            return got
+            return _recovered_again(image, *got, locator=locator, camera=camera, poses=poses, every=every, marker_set=marker_set, joint=joint,
+                                    search=search)
     return video, reg
+
+
+def _recovered_again(image: NDArray[np.uint8], video: VideoDetections, reg: DrillRegistration, *, locator: VideoMarkerLocator,
+                     camera: PinholeCamera, poses: tuple[MarkerPose, ...], every: tuple[MarkerPose, ...], marker_set: MarkerSet,
+                     joint: bool, search: bool) -> tuple[VideoDetections, DrillRegistration]:
+    """(detections, registration) after one more pass of :func:`_recover_predicted` where ``reg`` puts the tags still
+    missing, registered again when it found any; ``(video, reg)`` as given otherwise.
+
+    For a registration that gained markers since the missing tags were last looked for: the recovery's own second
+    pass, and a registration on tags named among the posed (:func:`_registration_with_named_tags`). Twin seed 12101,
+    markers flat, AP+lateral: the frame's detector found marker 1's tag alone, a registration on it was refused,
+    marker 6's tag named in part brought a registration on two markers, and marker 45's tag (a gloved corner) lay
+    within 12 px of where that registration put it, verified there, unlooked-for until this pass.
+    """
+    again, _, _ = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set, joint=joint, search=search)
+    if again is video:
+        return video, reg
+    return again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
 
 
 def _views(pose: MarkerPose) -> set[int]:
