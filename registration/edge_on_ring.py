@@ -86,12 +86,18 @@ def _profile_template(view: CArmView, carm_from_marker: NDArray[np.float64], des
 
 
 def _ncc(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> NDArray[np.float64]:
-    """Normalised correlation of ``tmpl`` (W,) with every window of ``data`` (W + 2 steps,), shifts -steps..steps."""
+    """Normalised correlation of ``tmpl`` (W,) with every window of ``data`` (W + 2 steps,), shifts -steps..steps, each
+    with its straight-line trend across the window taken out: the anatomy's slope under a stroke (a bone's edge, the
+    soft tissue thickening toward the back) is no part of the ring's shadow. With the mean alone taken out, 37 of 80
+    edge-on rings in the flat-marker twin's lateral views (17 seeds, from poses 3 mm off) had a half under
+    MIN_CORRELATION; with the trend, 18."""
     w = len(tmpl)
-    t = tmpl - tmpl.mean()
+    x = np.linspace(-1.0, 1.0, w)
+    basis = np.stack([np.full(w, 1.0 / np.sqrt(w)), x / np.linalg.norm(x)])  # (2, W) orthonormal: mean and slope
+    t = tmpl - (basis @ tmpl) @ basis
     tn = np.linalg.norm(t)
     win = np.lib.stride_tricks.sliding_window_view(data, w)[: 2 * steps + 1]
-    win = win - win.mean(axis=1, keepdims=True)
+    win = win - (win @ basis.T) @ basis
     return (win @ t) / np.maximum(np.linalg.norm(win, axis=1) * tn, 1e-12)
 
 

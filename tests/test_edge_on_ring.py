@@ -89,3 +89,24 @@ def test_three_flat_markers_seen_face_on_in_one_view_are_placed_by_their_strokes
     assert set(placed) == {6, 37, 47} and max(placed.values()) < 0.6, placed
     assert max(unplaced.values()) > 2.0, unplaced
     assert with_strokes < 1.7 and without > with_strokes + 0.3, (with_strokes, without)
+
+
+def test_a_slope_under_the_stroke_changes_nothing():
+    """The anatomy's slope under a stroke (a bone's edge, soft tissue thickening toward the back) is no part of the
+    ring's shadow: each window's straight-line trend is taken out before the profiles are compared. With the mean
+    alone taken out, 37 of 80 edge-on rings in the flat-marker twin's lateral views (17 seeds, from poses 3 mm off)
+    had a half under the correlation bar; with the trend, 18."""
+    scene, images = _flat_scene(8)
+    lateral = scene.views["lateral"]
+    i, truth, both = next((i, t, s) for i, t in scene.carm_from_marker.items()
+                          if len(s := measure_ring_stroke(images["lateral"], lateral, t, scene.marker_set.by_id(i))) == 2)
+    rows, cols = images["lateral"].shape
+    v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    n = both[0].normal
+    # A ramp across the stroke as steep as the stroke is bright (its profile's range) over the stroke's width.
+    contrast = float(np.ptp(images["lateral"][rows // 4: 3 * rows // 4, cols // 4: 3 * cols // 4]))
+    sloped = (images["lateral"] + 0.05 * contrast * (n[0] * u + n[1] * v)).astype(images["lateral"].dtype)
+    again = measure_ring_stroke(sloped, lateral, truth, scene.marker_set.by_id(i))
+    assert len(again) == 2
+    for a, b in zip(both, again):
+        assert abs(a.offset_px - b.offset_px) < 1e-3 and abs(a.correlation - b.correlation) < 1e-4, (a, b)
