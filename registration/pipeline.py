@@ -519,11 +519,17 @@ def _recovered_again(image: NDArray[np.uint8], video: VideoDetections, reg: Dril
     markers flat, AP+lateral: the frame's detector found marker 1's tag alone, a registration on it was refused,
     marker 6's tag named in part brought a registration on two markers, and marker 45's tag (a gloved corner) lay
     within 12 px of where that registration put it, verified there, unlooked-for until this pass.
+
+    A registration with the recovered tags that fails (a tag verified where predicted that the solve cannot fit:
+    degenerate, not converged) leaves the frame with the registration it had, not refused.
     """
     again, _, _ = _recover_predicted(image, video, reg, locator=locator, camera=camera, poses=poses, marker_set=marker_set, joint=joint, search=search)
     if again is video:
         return video, reg
-    return again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
+    try:
+        return again, register_video_to_fluoro(again, every, marker_set, camera, joint=joint)
+    except DrillnavError:  # the recovered tags are not borne out: the frame keeps the registration it had
+        return video, reg
 
 
 def _views(pose: MarkerPose) -> set[int]:

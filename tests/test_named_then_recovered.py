@@ -45,3 +45,26 @@ def test_the_tags_still_missing_are_looked_for_where_a_registration_on_named_tag
     truth = TRUE_DRILL_AXIS_CAMERA.transformed(pose).closest_point(entry)
     off_mm = [float(np.linalg.norm(TRUE_DRILL_AXIS_CAMERA.transformed(r.carm_from_drill).closest_point(entry) - truth)) for r in (reg, without)]
     assert off_mm[0] < off_mm[1] - 0.5, off_mm
+
+
+def test_a_registration_with_the_recovered_tags_that_fails_leaves_the_one_the_frame_had(monkeypatch):
+    """Where the solve cannot fit the tags recovered in the second look (here made to fail), the frame keeps the
+    registration the named tag brought; it is not refused."""
+    import accuracy
+
+    import drillnav.registration.pipeline as pipeline
+    from drillnav.registration.errors import DrillnavError
+
+    scene, poses, pose, video, image = study_shot(SEED, "ap+lateral", POSE, marker_tilt_deg=FLAT)
+    solve = pipeline.register_video_to_fluoro
+
+    def failing_with_45(detections, *args, **kwargs):
+        if 45 in {m.marker_id for m in detections.markers}:
+            raise DrillnavError("the joint solve did not converge (made to fail with marker 45)")
+        return solve(detections, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "register_video_to_fluoro", failing_with_45)
+    found, reg = register_with_recovery(image, video, locator=accuracy._locator(scene), camera=scene.calibrated_camera, poses=poses,
+                                        marker_set=scene.marker_set)
+    assert set(reg.used_ids) == {1, 6}, reg.used_ids
+    assert 45 not in {m.marker_id for m in found.markers}
