@@ -22,6 +22,14 @@ of a tag found with no prediction (:func:`.tag_search.identify_quad`, 20 cells o
 :attr:`.video_markers.VideoMarker.identified_by_code`) is an identity, and may stand alone. Its corners are as good
 as the outline, a few pixels (:data:`OUTLINE_CORNER_SIGMA_PX`): the joint solve weighs them so.
 
+Given ``rivals`` (the ids of the marker set in the dictionary), each hypothesis also records how its cells agree with
+the best of them other than the name, at any rotation, and with the name at its other rotations
+(``set_runner_up_agreeing``). A name that leads that by ``MIN_MARGIN_CELLS`` is the only tag of the set the cells
+read can be (:attr:`TagHypothesis.named_among_set`): a highlight only lifts a black cell to white, and a lifted or
+clipped cell is left unread, so the cells read are the tag's own. Where nothing else registers the frame, the caller
+lets such a name stand alone, flagged unreliable (nothing checks it):
+:func:`.pipeline._registration_with_named_tags`.
+
 Pure math: numpy and OpenCV's image functions.
 """
 
@@ -58,6 +66,8 @@ class TagHypothesis:
     edges_fitted : the corners are its edges' fitted crossings (:func:`.tag_recovery.fit_tag_edges`), not the outline's.
     cells_read, cells_agreeing : code cells read, and those agreeing with ``aruco_id``.
     runner_up_agreeing : the cells agreeing with the best other wanted id (any rotation); -1 when none is wanted.
+    set_runner_up_agreeing : the cells agreeing with the best of ``rivals`` other than ``aruco_id`` (any rotation) and with
+        ``aruco_id`` at its other rotations; -1 when no rivals were given.
     """
 
     aruco_id: int
@@ -66,15 +76,23 @@ class TagHypothesis:
     cells_read: int
     cells_agreeing: int
     runner_up_agreeing: int
+    set_runner_up_agreeing: int = -1
+
+    @property
+    def named_among_set(self) -> bool:
+        """Whether the cells read name ``aruco_id`` among the set's ids (``rivals``) by ``MIN_MARGIN_CELLS``."""
+        return self.set_runner_up_agreeing >= 0 and self.cells_agreeing - self.set_runner_up_agreeing >= MIN_MARGIN_CELLS
 
 
 def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequence[int], exclude_px: Sequence[NDArray[np.float64]] = (),
-                       half_above_px: int = 800, tolerance_px: float = 6.0) -> list[TagHypothesis]:
+                       half_above_px: int = 800, tolerance_px: float = 6.0, rivals: Sequence[int] = ()) -> list[TagHypothesis]:
     """The outlines of a grayscale frame (H, W) uint8 named among ``wanted`` (ArUco ids of ``dictionary``) by the rule of
     the module docstring, at most one per id, sorted by id.
 
     ``exclude_px``: (4, 2) corners of tags already found (their outlines are skipped). ``half_above_px``: see
     :func:`.tag_search.tag_candidates`. ``tolerance_px``: how far each fitted edge may lie from the outline.
+    ``rivals``: the ArUco ids of ``dictionary`` that may lie in the field (the marker set's), for
+    ``set_runner_up_agreeing``.
     """
     ids = sorted({int(i) for i in wanted})
     if not ids:
@@ -83,6 +101,8 @@ def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequ
     if ids[0] < 0 or ids[-1] >= len(codes):
         raise ValueError(f"wanted ids {ids} are not all ids of {dictionary} (0-{len(codes) - 1})")
     flat = codes.reshape(len(codes), -1)[ids]                                         # (w, s * s)
+    set_ids = sorted({int(i) for i in rivals} | set(ids)) if len(rivals) else []
+    set_flat = codes.reshape(len(codes), -1)[set_ids]                                 # (r, s * s)
     gray_f = gray.astype(np.float32)
     best: dict[int, TagHypothesis] = {}
     # Outlines as they are: a corner put beyond the frame's edge by two sides' lines is for the search, whose edge fit
@@ -91,12 +111,14 @@ def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequ
         edges = fit_tag_edges(gray_f, quad, tolerance_px=tolerance_px)
         corners = edges.corners_px if edges.accepted else quad
         agree = np.zeros((4, len(ids)), dtype=np.int64)
+        set_agree = np.zeros((4, len(set_ids)), dtype=np.int64)
         n_read = -1
         for k in range(4):
             read = read_code(gray_f, np.roll(corners, -k, axis=0), code_size=codes.shape[1], partial=True)
             if read.reason:
                 break
             agree[k] = ((flat == read.bits[None, :]) & read.known[None, :]).sum(axis=1)
+            set_agree[k] = ((set_flat == read.bits[None, :]) & read.known[None, :]).sum(axis=1)
             n_read = int(read.known.sum())
         else:
             per_id = agree.max(axis=0)                                                # (w,) each id at its best rotation
@@ -110,6 +132,12 @@ def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequ
             if aruco_id in best and best[aruco_id].cells_agreeing >= mine:
                 continue
             k = int(np.argmax(agree[:, top]))
+            set_runner_up = -1
+            if set_ids:
+                others = set_agree.copy()
+                others[k, set_ids.index(aruco_id)] = -1                               # the name at its own rotation
+                set_runner_up = int(others.max())
             best[aruco_id] = TagHypothesis(aruco_id=aruco_id, corners_px=np.roll(corners, -k, axis=0), edges_fitted=bool(edges.accepted),
-                                           cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up)
+                                           cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up,
+                                           set_runner_up_agreeing=set_runner_up)
     return [best[i] for i in sorted(best)]

@@ -492,7 +492,8 @@ def predicted_axis_error(
     focal-length scale error, the fluoroscopy X_C with ``fluoro_sigma_mm``,
     each registered by Horn. The 90th and 95th percentiles of the axis's
     displacement at the working point and of its angle are the bounds;
-    ``reliable`` is False when a 90 % bound exceeds its limit, and when the registration rests on one marker whose
+    ``reliable`` is False when a 90 % bound exceeds its limit, when the registration rests on one marker whose tag was
+    named by a code read in part (:func:`lone_name_unchecked`, judged on ``video``), and when it rests on one marker whose
     fluoroscopy pose does not stand alone (:func:`stands_alone`, judged on ``fluoro_poses``, the poses fluoroscopy
     gave before any joint solve refined them; default ``marker_poses``): nothing then checks that marker's BB
     correspondences, and a wrong one fits as well as the truth (on fresh seeds, a registration 128 mm and 59 deg
@@ -557,7 +558,8 @@ def predicted_axis_error(
         p90, p95, a90, a95 = max(p90, alt_pos), max(p95, alt_pos), max(a90, alt_ang), max(a95, alt_ang)
     return PredictedError(
         position_mm=p95, angle_deg=a95, cone_half_angle_deg=a95, position90_mm=p90, angle90_deg=a90,
-        reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg) and not lone_unchecked(registration, marker_poses if fluoro_poses is None else fluoro_poses),
+        reliable=bool(p90 <= position_limit_mm and a90 <= angle_limit_deg) and not lone_unchecked(registration, marker_poses if fluoro_poses is None else fluoro_poses)
+        and not lone_name_unchecked(registration, video),
     )
 
 
@@ -565,6 +567,15 @@ def stands_alone(pose: MarkerPose | None) -> bool:
     """Whether fluoroscopy alone fixed ``pose``: it converged on its BBs, no mirror solution is open, and its ring was
     identified at identify's own cost (not ``needs_camera``)."""
     return pose is not None and bool(pose.converged) and pose.mirror_carm_from_marker is None and not pose.needs_camera
+
+
+def lone_name_unchecked(registration: DrillRegistration, video: VideoDetections) -> bool:
+    """A registration on one marker whose tag was named by a code read in part (``named_among_posed``) that does not
+    identify it dictionary-wide (not ``identified_by_code``): no other marker, and no code, checks the name."""
+    if len(registration.used_ids) != 1:
+        return False
+    tag = video.by_id().get(registration.used_ids[0])
+    return tag is not None and tag.named_among_posed and not tag.identified_by_code
 
 
 def lone_unchecked(registration: DrillRegistration, fluoro_poses: tuple[MarkerPose, ...]) -> bool:

@@ -87,6 +87,9 @@ class VideoMarker:
         rule of a tag found with no prediction (:func:`.tag_search.identify_quad`: 20 cells or more read, 90 % of
         them agreeing, every other id of the dictionary at least 4 behind): the name stands without another marker
         beside it. Its corners are still its outline's.
+    named_among_set : ``named_among_posed`` only: the cells read name it among every tag of the marker set, at every
+        rotation, by :data:`.tag_hypotheses.MIN_MARGIN_CELLS` (:attr:`.tag_hypotheses.TagHypothesis.named_among_set`):
+        the name may stand alone, flagged unreliable, where nothing else registers the frame.
     """
 
     marker_id: int
@@ -99,6 +102,7 @@ class VideoMarker:
     corner_sigma_px: float = 0.1
     named_among_posed: bool = False
     identified_by_code: bool = False
+    named_among_set: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -582,7 +586,7 @@ class VideoMarkerLocator:
         named: list[VideoMarker] = []
         for name, per, wanted in missing:
             for hyp in outline_hypotheses(gray, dictionary=name, wanted=wanted, exclude_px=[m.corners_px for m in video.markers],
-                                          half_above_px=self.detect_below_px):
+                                          half_above_px=self.detect_below_px, rivals=list(per)):
                 spec = per[hyp.aruco_id]
                 gray_f = gray_f if gray_f is not None else gray.astype(np.float32)
                 by_code = identify_quad(gray_f, hyp.corners_px, dictionary=name, wanted=[hyp.aruco_id], partial=True, rivals=list(per)) is not None
@@ -595,7 +599,8 @@ class VideoMarkerLocator:
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     marker = placed if placed is not None else marker
-                named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True, identified_by_code=by_code))
+                named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True, identified_by_code=by_code,
+                                     named_among_set=hyp.named_among_set))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:

@@ -64,6 +64,20 @@ def test_a_tag_that_reads_in_too_few_cells_is_not_named(monkeypatch):
     assert [h.aruco_id for h in outline_hypotheses(frame, dictionary=DICT, wanted=[TAG_ID, 30])] == [TAG_ID]
 
 
+def test_a_name_among_the_set_leads_every_tag_of_the_set_at_every_rotation():
+    frame = glared_frame(blur_px=3.0, glare=250.0)  # 12 cells read, all agreeing with 17
+    (alone,) = outline_hypotheses(frame, dictionary=DICT, wanted=[TAG_ID, 30, 99])
+    assert alone.set_runner_up_agreeing == -1 and not alone.named_among_set  # no set given: nothing to judge it among
+    (h,) = outline_hypotheses(frame, dictionary=DICT, wanted=[TAG_ID, 30, 99], rivals=[TAG_ID, 30, 99])
+    assert h.cells_agreeing == 12 and h.set_runner_up_agreeing <= 10 and h.named_among_set
+    # A set as large as the dictionary holds a tag that 11 of those 12 cells fit: no name among it.
+    (h,) = outline_hypotheses(frame, dictionary=DICT, wanted=[TAG_ID, 30, 99], rivals=range(250))
+    assert h.set_runner_up_agreeing == 11 and not h.named_among_set
+    # Under a brighter highlight 7 cells read, and the set's other tags (or 17 turned) fit 6 of them.
+    (h,) = outline_hypotheses(glared_frame(blur_px=3.0, glare=400.0), dictionary=DICT, wanted=[TAG_ID, 30, 99], rivals=[TAG_ID, 30, 99])
+    assert h.cells_agreeing == 7 and h.set_runner_up_agreeing == 6 and not h.named_among_set
+
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 

@@ -23,7 +23,6 @@ from tag_detection import _true_corners  # noqa: E402  (the twin's true corners,
 
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
-from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_markers
 from drillnav.registration.marker_pose import register_markers
 from drillnav.registration.pipeline import LiveCalibration, predict_missing_tags, recover_missing_tags, register_with_recovery, track_frame
@@ -149,7 +148,11 @@ def test_track_frame_registers_with_the_recovered_tag_and_no_worse(gloved, fluor
 def test_a_previous_frames_registration_predicts_when_this_frame_has_none_of_its_own():
     """Only the glared marker posed in fluoroscopy (twin seed 3000, tag glare: 10 of its 36 code cells readable): the
     frame's own tags give no registration to predict from, and a search without a prediction
-    (:mod:`drillnav.registration.tag_search`) needs 20 cells; the drill's pose a frame earlier predicts it."""
+    (:mod:`drillnav.registration.tag_search`) needs 20 cells; the drill's pose a frame earlier predicts it.
+
+    Without that pose the frame registers on the tag named among the set by its cells read (no other tag of the set
+    fits them as well), flagged unreliable: nothing checks the name. With it, the tag is recovered where the pose puts
+    it, its identity borne out by its place, and the axis is reliable."""
     seed, marker = 3000, 33
     scene = make_scene(seed=seed, render=False, degradations=Degradations(tag_glare=True))
     pose = scene.drill_pose_towards(np.random.default_rng([seed, 2]), offset_mm=5.0, tilt_deg=5.0)
@@ -159,12 +162,15 @@ def test_a_previous_frames_registration_predicts_when_this_frame_has_none_of_its
     only = tuple(p for p in register_markers(dets, list(scene.views.values()), scene.marker_set) if p.marker_id == marker)
     assert only and only[0].converged
     calibration = LiveCalibration.build(camera=scene.calibrated_camera, axis_drill=scene.calibrated_axis_drill, marker_set=scene.marker_set)
-    with pytest.raises(DrillnavError, match="only 0 marker"):
-        track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set)
+    alone = track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set)
+    named = alone.video.by_id()[marker]
+    assert alone.registration.used_ids == (marker,) and named.named_among_posed and named.named_among_set and not named.identified_by_code
+    assert not alone.predicted_error.reliable
     # The drill a frame earlier: 0.5 mm and 0.3 deg from where it is now.
     moved = make_transform(Rotation.from_rotvec(np.radians(0.3) * np.array([0.6, 0.0, 0.8])).as_matrix(), np.array([0.3, -0.4, 0.0])) @ pose
     fa = track_frame(image, calibration=calibration, poses=only, marker_set=scene.marker_set, previous_carm_from_drill=moved)
     assert fa.video.by_id()[marker].recovered and fa.registration.used_ids == (marker,)
+    assert not fa.video.by_id()[marker].named_among_posed and fa.predicted_error.reliable
     truth = _true_corners(scene, pose)
     assert np.linalg.norm(fa.video.by_id()[marker].corners_px - truth[marker], axis=1).max() <= CORNER_TOLERANCE_PX
 
