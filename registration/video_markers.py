@@ -88,8 +88,9 @@ class VideoMarker:
         them agreeing, every other id of the dictionary at least 4 behind): the name stands without another marker
         beside it. Its corners are still its outline's.
     named_among_set : ``named_among_posed`` only: the cells read name it among every tag of the marker set, at every
-        rotation, by :data:`.tag_hypotheses.MIN_MARGIN_CELLS` (:attr:`.tag_hypotheses.TagHypothesis.named_among_set`):
-        the name may stand alone, flagged unreliable, where nothing else registers the frame.
+        rotation, by :data:`.tag_hypotheses.MIN_MARGIN_CELLS` (:attr:`.tag_hypotheses.TagHypothesis.named_among_set`),
+        and its corners are its fitted edges' crossings, a view of its square (within ``SQUARE_MISFIT_MIN_PX``): the
+        name may stand alone, flagged unreliable, where nothing else registers the frame.
     """
 
     marker_id: int
@@ -599,8 +600,11 @@ class VideoMarkerLocator:
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     marker = placed if placed is not None else marker
+                # Alone, nothing but the tag's own edges checks where it lies: a name among the set stands alone only on
+                # edges fitted to a view of its square (an outline bitten by a glove lay 28 px off, twin seed 3001).
+                alone = hyp.named_among_set and hyp.edges_fitted and marker.reprojection_error_px <= SQUARE_MISFIT_MIN_PX
                 named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True, identified_by_code=by_code,
-                                     named_among_set=hyp.named_among_set))
+                                     named_among_set=alone))
         return tuple(sorted(named, key=lambda m: m.marker_id))
 
     def _missing(self, video: VideoDetections, marker_ids: Iterable[int]) -> list[tuple[str, dict, list[int]]]:
