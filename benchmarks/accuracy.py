@@ -485,7 +485,7 @@ def write_docs(summary: list[dict], result: dict, command: str, degradations: De
         '  (its wire and BBs, a dark margin either side); the shift of the best normalised correlation (each window\'s',
         "  straight-line trend taken out, the anatomy's slope; at least 0.7, no rival within 0.85 of it), refined to a",
         '  fraction of a pixel, places that half across its line. Both halves must',
-        '  agree within 6 px (the predicted line\'s turn, which they correct: 2 px a degree). Each joins the solve as one row (1 px); the solve runs again, and the strokes are measured',
+        '  agree within 3 px. Each joins the solve as one row (1 px); the solve runs again, and the strokes are measured',
         '  once more at its poses; one left over 4 sigma from the solve with it is dropped',
         '  ([identity and error](identity_and_error.md#an-edge-on-rings-stroke-places-its-marker-where-its-bbs-cannot-5-dec-2026-forty-eighth-session)).',
         "- **Tags the camera missed** (a glove over a corner) are looked for where the registration predicts them, their",

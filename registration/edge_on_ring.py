@@ -44,13 +44,11 @@ TEMPLATE_MARGIN = 1.0
 MIN_CORRELATION = 0.7
 SECOND_PEAK_RATIO = 0.85
 MIN_SEPARATION_PX = 4.0
-# The two halves' shifts may differ by this much (px): the predicted line's turn in the image, which the stroke is
-# there to correct (a degree about the beam moves the two halves' middles apart by about 2 px). A joint solve's
-# marker pose is up to 2 deg off where its tag is the only other word on its normal (twin seed 3000, flat markers,
-# first pose: 1.6 deg, halves 5 px apart, each within 1 px of the truth); at 3 px it gave no stroke. From poses
-# 3 mm off along the AP beam and up to 2 deg askew (17 flat seeds, 80 edge-on rings) 3 -> 6 px took 28 -> 37 strokes,
-# with a half over 2 px off in 4 -> 6 of them and none over 5 px, even with no agreement asked.
-HALF_AGREEMENT_PX = 6.0
+# The two halves' shifts may differ by this much (px): the predicted line's turn in the image (a degree turns a
+# 100 px half-stroke's middle by under 2 px). 6 px was measured and not kept: it took a stroke of a pose 1.6 deg off
+# (seed 3000, flat markers; 48 flat seeds' AP+lateral median 0.86 -> 0.80 mm), but also halves one of which lay 2.4-4.6
+# px off (seed 13301, first pose: 1.25 mm under a 4.2 mm bound, flagged -> 4.39 mm under 1.85 mm, reliable).
+HALF_AGREEMENT_PX = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -65,30 +65,6 @@ def test_a_stroke_half_outside_the_image_gives_none():
     assert abs(both[0].offset_px - both[0].predicted_px - (both[1].offset_px - both[1].predicted_px)) <= 3.0, "the two halves agree"
 
 
-def test_a_pose_turned_two_degrees_in_the_image_still_finds_its_stroke():
-    """A pose turned about the view's beam moves the two halves' predictions apart, by about 2 px a degree: the
-    stroke is what corrects it. Turned 2 deg, the halves' shifts differ by 4-5 px and each lies within 1.5 px of the
-    truth; asked to agree within 3 px, as they were, none was taken."""
-    scene, images = _flat_scene(9)
-    lateral = scene.views["lateral"]
-    turned_found = 0
-    for i, truth in scene.carm_from_marker.items():
-        design = scene.marker_set.by_id(i)
-        if len(measure_ring_stroke(images["lateral"], lateral, truth, design)) != 2:
-            continue
-        beam = truth[:3, 3] - lateral.source_position_mm
-        turned = truth.copy()
-        turned[:3, :3] = from_rotvec(np.radians(2.0) * beam / np.linalg.norm(beam))[:3, :3] @ truth[:3, :3]
-        got = measure_ring_stroke(images["lateral"], lateral, turned, design)
-        assert len(got) == 2, i
-        shifts = [st.offset_px - st.predicted_px for st in got]
-        assert abs(shifts[0] - shifts[1]) > 3.0, (i, shifts)
-        for st in got:
-            assert abs(st.offset_px - float(st.normal @ lateral.project(apply(truth, st.anchor_mm[None]))[0])) < 1.5, i
-        turned_found += 1
-    assert turned_found >= 4, f"only {turned_found} edge-on rings with a stroke in seed 9's lateral view: the scene no longer tests it"
-
-
 SEED, POSE = 12000, 0
 
 
