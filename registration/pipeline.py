@@ -558,8 +558,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
 
     Borne out: the registration uses at least two markers (one, where a named marker it uses is
     ``identified_by_code``: its code identifies it dictionary-wide; or, in a frame otherwise refused
-    (``used_before`` 0), ``named_among_set``: its cells name it among every tag of the set, and the registration is
-    then flagged, :func:`.video_fluoro.lone_name_unchecked`), more than ``used_before`` (the markers the frame's
+    (``used_before`` 0), ``named_among_set``: its cells name it among every tag of the set and its corners are its
+    fitted edges', and the registration is then flagged, :func:`.video_fluoro.lone_name_unchecked`), more than ``used_before`` (the markers the frame's
     registration used without them; 0 when it was refused), one of them named, and every marker it uses lies within
     ``NAMED_MAX_FRE_MM`` of where fluoroscopy puts it. A named tag whose marker misfits the others is rejected by the
     joint solve like any marker, and dropped; markers kept agree on their places in the camera and in fluoroscopy,
@@ -580,10 +580,10 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
         return None
     used = set(reg.used_ids)
     # A name whose code identifies it dictionary-wide stands alone, as a tag the search found would; any other only
-    # beside another marker, but for a name the cells read give no other tag of the set in a frame otherwise refused
-    # (flagged: nothing checks it). Twin seed 10402 (random pair, second drill pose): the frame's one tag in view glared,
-    # 7 cells read name marker 44 among the set by 2; refused with three markers in each view, it registers 3.1 mm off
-    # under a 3.2 mm bound.
+    # beside another marker, but for a name the cells read give no other tag of the set, placed on its fitted edges, in a
+    # frame otherwise refused (flagged: nothing checks it). Twin seed 10402 (random pair, second drill pose): the
+    # frame's one tag in view glared, 7 cells read name marker 44 among the set by 2; refused with three markers in each
+    # view, it registers 3.1 mm off under a 3.2 mm bound.
     alone = any((m.identified_by_code or (used_before == 0 and m.named_among_set)) and m.marker_id in used for m in named)
     if len(used) < max(1 if alone else 2, used_before + 1) or not used & {m.marker_id for m in named}:
         return None

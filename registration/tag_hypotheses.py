@@ -27,7 +27,8 @@ the best of them other than the name, at any rotation, and with the name at its 
 (``set_runner_up_agreeing``). A name that leads that by ``MIN_MARGIN_CELLS`` is the only tag of the set the cells
 read can be (:attr:`TagHypothesis.named_among_set`): a highlight only lifts a black cell to white, and a lifted or
 clipped cell is left unread, so the cells read are the tag's own. Where nothing else registers the frame, the caller
-lets such a name stand alone, flagged unreliable (nothing checks it):
+lets such a name stand alone when its edges were also fitted to a view of its square
+(:attr:`.video_markers.VideoMarker.named_among_set`), flagged unreliable (nothing checks it):
 :func:`.pipeline._registration_with_named_tags`.
 
 Pure math: numpy and OpenCV's image functions.
