@@ -35,7 +35,7 @@ from .horn import absolute_orientation, absolute_orientation_batch
 from .edge_on_ring import measure_ring_stroke
 from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, STROKE_SIGMA_PX, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
-from .marker_pose import MarkerPose
+from .marker_pose import MarkerPose, planar_candidates
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors, with_claims
@@ -232,6 +232,9 @@ def register_video_to_fluoro(
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
             sol, alternative = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
+        elif len(sol.used_ids) == 1 and sol.marker_chi[sol.used_ids[0]] > LONE_MARKER_MISFIT_CHI:
+            i = sol.used_ids[0]
+            sol, alternative = _settle_lone_marker_views(sol, solve, drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm))
         elif len(sol.used_ids) == 1 and len(every[sol.used_ids[0]].solutions) > 1:
             sol, alternative = _settle_lone_marker_mirror(sol, every[sol.used_ids[0]], solve)
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
@@ -339,6 +342,9 @@ def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.flo
     return min(fits, key=lambda f: f[1])[0]
 
 
+# A lone marker whose RMS normalised residual at the end exceeds this (joint_solve's outlier_chi) fits no pose: where
+# several views observe it, each is tried alone (:func:`_settle_lone_marker_views`).
+LONE_MARKER_MISFIT_CHI = 4.0
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
 # chi-square) is not ruled out by the data: about a 4-sigma difference in one direction.
 MIRROR_DELTA_CHI2 = 16.0
@@ -417,6 +423,49 @@ def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict
         elif other is None or alt.chi2 < other.chi2:
             other = alt
     return best, _left_open(best, other)
+
+
+def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker_: NDArray[np.float64]) -> tuple[JointSolution, NDArray[np.float64] | None]:
+    """One marker left, fitting far beyond its noise (over ``LONE_MARKER_MISFIT_CHI``) over several views: the marker
+    solved on each view's BBs alone with its tag (``drill_from_marker_`` (4, 4), from the camera), the best of those
+    that fit, and the next one's ``carm_from_drill`` (None where only one fits); ``sol`` as it is where none does.
+
+    Its views place it apart: one of them took another marker's ring for it (a pattern partly hidden matching the
+    wrong design). With no other marker, nothing tells which view is right, so the bound reaches both. Twin seed
+    11000 (random pair, second drill pose): view p-28s-23 identified marker 0's ring, five of its BBs seen, as marker
+    22, 78 mm from where view p+16s-14 placed 22; solved together, the axis lay 74 mm and 56 deg off under a 28.5 mm bound.
+    """
+    i = sol.used_ids[0]
+    observations = solve["observations"][i]
+    fits = []
+    for view in {id(o[0]): o[0] for o in observations}.values():
+        own = tuple(o for o in observations if o[0] is view)
+        try:
+            starts = [t @ invert(drill_from_marker_) for o in own for t in planar_candidates(o[0], o[1], o[2])]
+        except ValueError:
+            continue
+        if not starts:
+            continue
+        carm_from_drill0, _ = fit_constellation({i: own}, {i: drill_from_marker_}, starts)
+        try:
+            alt = joint_solve(carm_from_drill0=carm_from_drill0, carm_from_marker0={i: carm_from_drill0 @ drill_from_marker_},
+                              **{**solve, "observations": {i: own}, "strokes": None})
+        except DrillnavError:
+            continue
+        if alt.used_ids == (i,) and alt.marker_chi[i] <= LONE_MARKER_MISFIT_CHI:
+            fits.append(alt)
+    if not fits:
+        return sol, None
+    fits.sort(key=lambda f: f.marker_chi[i])
+    return fits[0], _distinct_drill(fits[0], fits[1]) if len(fits) > 1 else None
+
+
+def _distinct_drill(best: JointSolution, other: JointSolution) -> NDArray[np.float64] | None:
+    """``other``'s ``carm_from_drill`` unless both solutions turn the drill alike (within 0.5 deg) and place it alike (within 0.5 mm)."""
+    turn = Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude()
+    if turn < np.radians(0.5) and np.linalg.norm(best.carm_from_drill[:3, 3] - other.carm_from_drill[:3, 3]) < 0.5:
+        return None
+    return other.carm_from_drill
 
 
 def _spanning(covariance: NDArray[np.float64], carm_from_drill: NDArray[np.float64], mirror: NDArray[np.float64],
