@@ -197,6 +197,7 @@ def joint_solve(
     give_up_above_chi2: float | None = None,
     strokes: dict[int, tuple] | None = None,
     stroke_sigma_px: float = STROKE_SIGMA_PX,
+    refine: bool = True,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
 
@@ -234,6 +235,8 @@ def joint_solve(
     where an edge-on marker's ring stroke lies across its line (:func:`.edge_on_ring.measure_ring_stroke`), each
     anchor's image along its normal, with ``stroke_sigma_px`` noise; they count in no marker's chi, so they reject
     no marker.
+    ``refine`` False: the plain fit's solution at the starting poses as given, no step taken (its chi-square is how
+    well those poses fit: a mirror image that the refinement would leave for the best solution).
     """
     ids = sorted(set(observations) & set(corners_px) & set(carm_from_marker0))
     if len(ids) < min_markers:
@@ -265,7 +268,9 @@ def joint_solve(
             crowded_bbs, corner_extra, anchors, dict(strokes or {}), float(stroke_sigma_px))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
-    sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear")
+    sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
+    if not refine:
+        return sol
     corner_min_px = outlier_chi * corner_sigma_px
     clean = max(sol.marker_chi.values()) <= outlier_chi and not _corner_suspects(sol, corners_px, ids, corner_min_px) and all(
         len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px)[k][1]) == len(o[1])
@@ -627,7 +632,8 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, *, loss: str) -> JointSolution:
+           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, *, loss: str,
+           max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
     m = len(ids)
@@ -766,7 +772,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             jac[in_marker, 6 + 6 * row_marker[in_marker] + k] = diff[6 + n_glob + k, in_marker]
         return jac
 
-    sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8, max_nfev=100)
+    sol = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_par), jac=jacobian, method="trf", loss=loss, f_scale=3.0, x_scale="jac", xtol=1e-8, ftol=1e-8,
+                        max_nfev=100 if max_nfev is None else max_nfev)
 
     def unpack(x):
         drill = perturb_about(x[:6], drill0, pivot_d)

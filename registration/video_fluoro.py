@@ -361,13 +361,7 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     reflects the constellation across the plane through its centroid perpendicular to the beam, then across
     its own plane (together a proper rotation about their intersection).
     """
-    centres = np.array([sol.carm_from_marker[i][:3, 3] for i in sol.used_ids])
-    centroid = centres.mean(axis=0)
-    normal = np.linalg.svd(centres - centroid)[2][2] if len(centres) >= 3 else sol.carm_from_marker[sol.used_ids[0]][:3, 2]
-    beam = centroid - view.source_position_mm
-    beam /= np.linalg.norm(beam)
-    rot = (np.eye(3) - 2.0 * np.outer(beam, beam)) @ (np.eye(3) - 2.0 * np.outer(normal, normal))
-    flip = make_transform(rot, centroid - rot @ centroid)
+    flip = _mirror_across_beam(sol, view)
     # A mirror whose first plain fit is far beyond the best (MIRROR_GIVE_UP times the margin that keeps it open) is not
     # worth the robust rounds, rejection and vote: on the twin they took 0.6-1.4 s of a single view's registration, and
     # only dropped BBs or markers from a fit already ruled out.
@@ -380,13 +374,47 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     if set(alt.used_ids) != set(sol.used_ids):
         return sol, None
     best, other = (sol, alt) if sol.chi2 <= alt.chi2 else (alt, sol)
-    return best, _left_open(best, other)
+    if not _same_drill(best, other):
+        return best, _left_open(best, other)
+    # Both starts reached one solution: the mirror is no minimum of its own, the refinement slides from it to the best.
+    # Nearly face-on to the beam a marker's tilt shows only through its pattern's foreshortening (1 - cos), and a
+    # pixel's bias (the intensifier's distortion across it, a BB's pull) turns it over; the mirror image itself may
+    # still fit within the margin. Twin seed 11100 (flat markers, AP view alone, second drill pose): marker 10 alone,
+    # 5.8 deg from face-on, both planar starts refined to a pose 12.7 deg off, its mirror image (unrefined) fitting
+    # within the margin (chi-square 8.1 against 2.4 + 16); the axis lay 30 mm / 12.4 deg off under a 7.5 mm / 3.4 deg bound.
+    # Both are judged on the same measurements (the best's own fit may have left BBs or corners out).
+    flip = _mirror_across_beam(best, view)
+    mirror = flip @ best.carm_from_drill
+    inputs = {**solve, "observations": {i: solve["observations"][i] for i in best.used_ids}, "min_markers": len(best.used_ids)}
+    try:
+        here = joint_solve(carm_from_drill0=best.carm_from_drill, carm_from_marker0=best.carm_from_marker, refine=False, **inputs)
+        there = joint_solve(carm_from_drill0=mirror, carm_from_marker0={i: flip @ t for i, t in best.carm_from_marker.items()}, refine=False, **inputs)
+    except DrillnavError:
+        return best, None
+    return best, mirror if there.chi2 - here.chi2 < MIRROR_DELTA_CHI2 * max(here.reduced_chi2, 1.0) else None
+
+
+def _mirror_across_beam(sol: JointSolution, view) -> NDArray[np.float64]:
+    """The proper rotation (4, 4) that takes ``sol``'s constellation to its mirror image in ``view``: across the plane
+    through its centroid perpendicular to the beam, then across its own plane (one marker: the marker's plane)."""
+    centres = np.array([sol.carm_from_marker[i][:3, 3] for i in sol.used_ids])
+    centroid = centres.mean(axis=0)
+    normal = np.linalg.svd(centres - centroid)[2][2] if len(centres) >= 3 else sol.carm_from_marker[sol.used_ids[0]][:3, 2]
+    beam = centroid - view.source_position_mm
+    beam /= np.linalg.norm(beam)
+    rot = (np.eye(3) - 2.0 * np.outer(beam, beam)) @ (np.eye(3) - 2.0 * np.outer(normal, normal))
+    return make_transform(rot, centroid - rot @ centroid)
+
+
+def _same_drill(a: JointSolution, b: JointSolution) -> bool:
+    """Whether two solutions turn the drill alike (within 0.5 deg): both starts reached the same solution."""
+    return Rotation.from_matrix(a.carm_from_drill[:3, :3].T @ b.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5)
 
 
 def _left_open(best: JointSolution, other: JointSolution | None) -> NDArray[np.float64] | None:
     """``other``'s ``carm_from_drill`` when the data do not rule it out against ``best`` (within ``MIRROR_DELTA_CHI2``),
     None when they do, when there is none, or when both starts reached the same solution."""
-    if other is None or Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude() < np.radians(0.5):
+    if other is None or _same_drill(best, other):
         return None
     return other.carm_from_drill if other.chi2 - best.chi2 < MIRROR_DELTA_CHI2 * max(best.reduced_chi2, 1.0) else None
 
