@@ -394,11 +394,13 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
     ``HORN_MIN_MARKERS`` markers on the joint solve's frames)."""
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
-    if reg.mirror_carm_from_drill is not None:
+    # A mirror image the refinement slid from (``mirror_unrefined``) widens the bound only: the search goes as with none.
+    mirror = None if reg.mirror_unrefined else reg.mirror_carm_from_drill
+    if mirror is not None:
         # One view left the constellation's mirror open (a registration on one or two markers): the missing tags
         # are looked for where either solution puts them, so the one the frame bears out brings the markers that settle it.
         mirrored = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
-                                        carm_from_drill=reg.mirror_carm_from_drill)
+                                        carm_from_drill=mirror)
         expected = _merged(expected, mirrored)
     weak = search and joint and len(reg.used_ids) < HORN_MIN_MARKERS
     more = video
@@ -407,15 +409,15 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
                                  carm_from_marker=reg.carm_from_marker)
     if expected:
         placed = settled
-        if reg.mirror_carm_from_drill is not None:
+        if mirror is not None:
             placed = _merged(placed, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
-                                                        carm_from_drill=reg.mirror_carm_from_drill))
+                                                        carm_from_drill=mirror))
         # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
         # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
         # also tries the prediction shifted.
         # With the solution settled, a tag found where predicted is named by its place too (the marker posed there).
         more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed,
-                               by_place=reg.mirror_carm_from_drill is None)
+                               by_place=mirror is None)
     if joint:
         # Markers identified in two views whose fit did not converge (a steep view's crowded BBs): where their BBs put
         # them, their tags are looked for too, named by their code alone (no place vouches for an unsettled pose).

@@ -84,6 +84,10 @@ class DrillRegistration:
     # One view only: the constellation's mirror solution (4, 4) when it fits nearly as well (None: ruled out).
     # predicted_axis_error's bounds then reach it, and the axis is flagged unreliable past the limits.
     mirror_carm_from_drill: NDArray[np.float64] | None = None
+    # The mirror is the solution's mirror image, no minimum of its own (the refinement slid from it to the best, though
+    # it fits within the margin): it widens the bound, but the tags the frame missed are looked for where the best
+    # solution puts them alone, and named by their place as with no mirror (:func:`.pipeline.register_with_recovery`).
+    mirror_unrefined: bool = False
     # The marker poses registered: those given, with the BBs claimed through the video's identities
     # (:mod:`.video_claims`) and the markers found that way; empty without the joint solve.
     marker_poses: tuple = ()
@@ -228,10 +232,10 @@ def register_video_to_fluoro(
         # An edge-on marker (a lateral view, markers on the anterior skin) shows few BBs or none, but its ring's stroke
         # across its line fixes its depth along the other views' beams: measured at the solve's poses, solved again.
         sol = _with_strokes(sol, every, solve, carm_from_marker, marker_set)
-        alternative = None
+        alternative, unrefined = None, False
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
-            sol, alternative = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
+            sol, alternative, unrefined = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
         elif len(sol.used_ids) == 1 and sol.marker_chi[sol.used_ids[0]] > LONE_MARKER_MISFIT_CHI:
             i = sol.used_ids[0]
             sol, alternative = _settle_lone_marker_views(sol, solve, drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm))
@@ -242,7 +246,7 @@ def register_video_to_fluoro(
         carm_from_marker.update(sol.carm_from_marker)
         covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
         extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
-                     mirror_carm_from_drill=alternative, detector_distortion_px=sol.detector_distortion_px)
+                     mirror_carm_from_drill=alternative, mirror_unrefined=unrefined, detector_distortion_px=sol.detector_distortion_px)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
@@ -352,8 +356,9 @@ MIRROR_DELTA_CHI2 = 16.0
 MIRROR_GIVE_UP = 100.0
 
 
-def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None]:
-    """One view: the better of the joint solution and its mirror image, and the other one's ``carm_from_drill`` if it fits nearly as well.
+def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple[JointSolution, NDArray[np.float64] | None, bool]:
+    """One view: the better of the joint solution and its mirror image, the other one's ``carm_from_drill`` if it fits
+    nearly as well, and whether that is the best's mirror image unrefined (both starts reached one solution).
 
     The markers lie on the skin, nearly in one plane, and the camera ties the drill rigidly to them: in one
     view the whole constellation has the planar ambiguity of a single marker (depth along the beam poorly
@@ -370,12 +375,12 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
         alt = joint_solve(carm_from_drill0=flip @ sol.carm_from_drill, carm_from_marker0={i: flip @ t for i, t in sol.carm_from_marker.items()},
                           give_up_above_chi2=give_up, **solve)
     except DrillnavError:
-        return sol, None
+        return sol, None, False
     if set(alt.used_ids) != set(sol.used_ids):
-        return sol, None
+        return sol, None, False
     best, other = (sol, alt) if sol.chi2 <= alt.chi2 else (alt, sol)
     if not _same_drill(best, other):
-        return best, _left_open(best, other)
+        return best, _left_open(best, other), False
     # Both starts reached one solution: the mirror is no minimum of its own, the refinement slides from it to the best.
     # Nearly face-on to the beam a marker's tilt shows only through its pattern's foreshortening (1 - cos), and a
     # pixel's bias (the intensifier's distortion across it, a BB's pull) turns it over; the mirror image itself may
@@ -390,8 +395,10 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
         here = joint_solve(carm_from_drill0=best.carm_from_drill, carm_from_marker0=best.carm_from_marker, refine=False, **inputs)
         there = joint_solve(carm_from_drill0=mirror, carm_from_marker0={i: flip @ t for i, t in best.carm_from_marker.items()}, refine=False, **inputs)
     except DrillnavError:
-        return best, None
-    return best, mirror if there.chi2 - here.chi2 < MIRROR_DELTA_CHI2 * max(here.reduced_chi2, 1.0) else None
+        return best, None, False
+    if there.chi2 - here.chi2 < MIRROR_DELTA_CHI2 * max(here.reduced_chi2, 1.0):
+        return best, mirror, True
+    return best, None, False
 
 
 def _mirror_across_beam(sol: JointSolution, view) -> NDArray[np.float64]:
