@@ -386,7 +386,7 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     # pixel's bias (the intensifier's distortion across it, a BB's pull) turns it over; the mirror image itself may
     # still fit within the margin. Twin seed 11100 (flat markers, AP view alone, second drill pose): marker 10 alone,
     # 5.8 deg from face-on, both planar starts refined to a pose 12.7 deg off, its mirror image (unrefined) fitting
-    # within the margin (chi-square 8.1 against 2.4 + 16); the axis lay 30 mm / 12.4 deg off under a 7.5 mm / 3.4 deg bound.
+    # within the margin (chi-square 8.1 against 2.6 + 16); the axis lay 30 mm / 12.4 deg off under a 7.5 mm / 3.4 deg bound.
     # Both are judged on the same measurements (the best's own fit may have left BBs or corners out).
     flip = _mirror_across_beam(best, view)
     mirror = flip @ best.carm_from_drill
