@@ -477,7 +477,7 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
         own = tuple(o for o in observations if o[0] is view)
         try:
             starts = [t @ invert(drill_from_marker_) for o in own for t in planar_candidates(o[0], o[1], o[2])]
-        except ValueError:
+        except (ValueError, cv2.error):  # its BBs nearly collinear (edge-on in that view)
             continue
         if not starts:
             continue
@@ -497,8 +497,7 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
 
 def _distinct_drill(best: JointSolution, other: JointSolution) -> NDArray[np.float64] | None:
     """``other``'s ``carm_from_drill`` unless both solutions turn the drill alike (within 0.5 deg) and place it alike (within 0.5 mm)."""
-    turn = Rotation.from_matrix(best.carm_from_drill[:3, :3].T @ other.carm_from_drill[:3, :3]).magnitude()
-    if turn < np.radians(0.5) and np.linalg.norm(best.carm_from_drill[:3, 3] - other.carm_from_drill[:3, 3]) < 0.5:
+    if _same_drill(best, other) and np.linalg.norm(best.carm_from_drill[:3, 3] - other.carm_from_drill[:3, 3]) < 0.5:
         return None
     return other.carm_from_drill
 
