@@ -348,8 +348,9 @@ def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.flo
     return min(fits, key=lambda f: f[1])[0]
 
 
-# A lone marker whose RMS normalised residual at the end exceeds this (joint_solve's outlier_chi) fits no pose: where
-# several views observe it, each is tried alone (:func:`_settle_lone_marker_views`).
+# A marker whose RMS normalised residual at the end exceeds this (joint_solve's outlier_chi) fits no pose with the
+# rest: a lone marker observed in several views is solved on each view alone (:func:`_settle_lone_marker_views`); of
+# two markers, each is solved alone and the bound reaches both (:func:`_two_markers_alone`).
 LONE_MARKER_MISFIT_CHI = 4.0
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
 # chi-square) is not ruled out by the data: about a 4-sigma difference in one direction.
