@@ -197,6 +197,7 @@ def joint_solve(
     give_up_above_chi2: float | None = None,
     strokes: dict[int, tuple] | None = None,
     stroke_sigma_px: float = STROKE_SIGMA_PX,
+    rolls: dict[int, tuple] | None = None,
     refine: bool = True,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
@@ -235,6 +236,9 @@ def joint_solve(
     where an edge-on marker's ring stroke lies across its line (:func:`.edge_on_ring.measure_ring_stroke`), each
     anchor's image along its normal, with ``stroke_sigma_px`` noise; they count in no marker's chi, so they reject
     no marker.
+    ``rolls``: {marker id: ((CArmView, near (3,) mm and far (3,) mm in the marker frame, normal (2,), apart px, sigma px), ...)}:
+    where an edge-on marker's shadow shows it turned about its own line (:func:`.edge_on_roll.measure_ring_roll`),
+    how far apart across the line the two points' images lie, with its own noise; like strokes, they reject no marker.
     ``refine`` False: the plain fit's solution at the starting poses as given, no step taken (its chi-square is how
     well those poses fit: a mirror image that the refinement would leave for the best solution).
     """
@@ -265,7 +269,7 @@ def joint_solve(
     if not stroke_sigma_px > 0:
         raise ValueError(f"the stroke sigma must be > 0 px, got {stroke_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, anchors, dict(strokes or {}), float(stroke_sigma_px))
+            crowded_bbs, corner_extra, anchors, dict(strokes or {}), float(stroke_sigma_px), dict(rolls or {}))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
@@ -632,7 +636,7 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, *, loss: str,
+           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, rolls: dict, *, loss: str,
            max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
@@ -699,6 +703,22 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         s_has = s_dv >= 0
     else:
         s_mk = np.zeros(0, dtype=np.int64)
+    # Rolls of edge-on markers (the camera's markers only): one row each, two points' images apart along a normal. The
+    # two image a few pixels apart, so an intensifier's distortion, the same at both, is left out.
+    r_rows = [(k, view, np.stack([np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)]), np.asarray(nv, dtype=np.float64), float(d), float(sg))
+              for k, i in enumerate(ids) for view, a, b, nv, d, sg in rolls.get(i, ())]
+    n_r = len(r_rows)
+    if n_r:
+        if not all(r[5] > 0 and np.isfinite(r[4]) for r in r_rows):
+            raise ValueError(f"a roll needs a finite separation and a sigma > 0 px, got {[(r[4], r[5]) for r in r_rows]}")
+        r_obj = np.concatenate([r[2] for r in r_rows])  # (2 R, 3): near, far of each
+        r_mk = np.array([r[0] for r in r_rows], dtype=np.int64)
+        r_pa = np.repeat(np.stack([r[1].projection_matrix for r in r_rows]), 2, axis=0)
+        r_nrm = np.stack([r[3] for r in r_rows])
+        r_apart = np.array([r[4] for r in r_rows])
+        r_sigma = np.array([r[5] for r in r_rows])
+    else:
+        r_mk = np.zeros(0, dtype=np.int64)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
     n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
@@ -736,16 +756,26 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             return np.stack([u, v], axis=-1)
         rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
         prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
-        if not n_s:
-            return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), prior], axis=1)
+        rest = [rf.reshape(n, -1), rc.reshape(n, -1)]
+        if n_s:
+            rest.append(stroke_rows(xs, rot_m, t_m))
+        if n_r:
+            pr = np.einsum("pnij,nj->pni", rot_m[:, np.repeat(r_mk, 2)], r_obj) + t_m[:, np.repeat(r_mk, 2)]
+            hr = np.einsum("nij,pnj->pni", r_pa[:, :, :3], pr) + r_pa[:, :, 3]
+            uvr = (hr[..., :2] / hr[..., 2:3]).reshape(n, n_r, 2, 2)
+            rest.append((np.sum((uvr[:, :, 0] - uvr[:, :, 1]) * r_nrm, axis=-1) - r_apart) / r_sigma)
+        return np.concatenate([*rest, prior], axis=1)
+
+    def stroke_rows(xs, rot_m, t_m):
+        """Normalised residuals (P, n_s) of the ring strokes."""
+        n = xs.shape[0]
         ps = np.einsum("pnij,nj->pni", rot_m[:, s_mk], s_obj) + t_m[:, s_mk]
         hs = np.einsum("nij,pnj->pni", s_pa[:, :, :3], ps) + s_pa[:, :, 3]
         uvs = hs[..., :2] / hs[..., 2:3]
         if n_dv and np.any(s_has):
             coef_s = xs[:, i_dist:].reshape(n, n_dv, 2)[:, s_dv[s_has]]
             uvs[:, s_has] += intensifier_shift_px(uvs[:, s_has], s_center[s_has], s_corner_r[s_has][:, None], coef_s)
-        rs = (np.sum(uvs * s_nrm, axis=-1) - s_off) / stroke_sigma_px
-        return np.concatenate([rf.reshape(n, -1), rc.reshape(n, -1), rs, prior], axis=1)
+        return (np.sum(uvs * s_nrm, axis=-1) - s_off) / stroke_sigma_px
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
     # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at
@@ -753,7 +783,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
     # sparse differences, which evaluate the groups one call at a time).
     h = 1e-6
-    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), s_mk, np.full(N_INTRINSICS + 2 * n_dv, -1)])
+    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), s_mk, r_mk, np.full(N_INTRINSICS + 2 * n_dv, -1)])
     in_marker = np.nonzero(row_marker >= 0)[0]
     n_glob = N_INTRINSICS + 2 * n_dv  # intrinsics and the views' distortion: one column each
     steps = np.zeros((6 + n_glob + 6, n_par))

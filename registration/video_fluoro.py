@@ -33,6 +33,7 @@ from .camera import PinholeCamera
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
 from .edge_on_ring import measure_ring_stroke
+from .edge_on_roll import measure_ring_roll
 from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, STROKE_SIGMA_PX, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose, planar_candidates
@@ -285,34 +286,40 @@ STROKE_OUTLIER_CHI = 4.0
 def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict, starts: dict[int, NDArray[np.float64]],
                   marker_set: MarkerSet) -> JointSolution:
     """``sol`` solved again with the ring strokes (:func:`.edge_on_ring.measure_ring_stroke`) of its markers in the views
-    where they show fewer than ``STROKE_BELOW_BBS`` BBs; ``solve`` (joint_solve's other arguments) takes the strokes, so
-    later solves keep them. ``sol`` as it is where the poses carry no images or no stroke is found."""
+    where they show fewer than ``STROKE_BELOW_BBS`` BBs, and with their rolls (:func:`.edge_on_roll.measure_ring_roll`)
+    in every view where they are edge-on; ``solve`` (joint_solve's other arguments) takes both, so later solves keep
+    them. ``sol`` as it is where the poses carry no images or nothing is measured."""
     images = next((p.view_images for p in every.values() if p.view_images), ())
     if len(images) < 2:
         return sol
     for _ in range(STROKE_ROUNDS):
         strokes: dict[int, list] = {}
+        rolls: dict[int, list] = {}
         for i in sol.used_ids:
             shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
+            design = marker_set.by_id(i)
             for view, image in images:
+                roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design)
+                if roll is not None:
+                    rolls.setdefault(i, []).append((view, roll.near_mm, roll.far_mm, roll.normal, roll.apart_px, roll.sigma_px))
                 if shown.get(id(view), 0) >= STROKE_BELOW_BBS:
                     continue
-                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], marker_set.by_id(i))
+                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], design)
                 if found:
                     strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
                                                       np.array([st.offset_px for st in found])))
-        if not strokes:
+        if not strokes and not rolls:
             return sol
         while True:
-            again = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker}, **{**solve, "strokes": strokes})
-            far = _far_strokes(again, strokes)
-            if not far:
+            again = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker}, **{**solve, "strokes": strokes, "rolls": rolls})
+            far, far_rolls = _far_strokes(again, strokes), _far_rolls(again, rolls)
+            if not far and not far_rolls:
                 break
-            strokes = {i: [s for k, s in enumerate(per) if (i, k) not in far] for i, per in strokes.items()}
-            strokes = {i: per for i, per in strokes.items() if per}
-            if not strokes:
+            strokes = {i: per for i, per in ((i, [s for k, s in enumerate(per) if (i, k) not in far]) for i, per in strokes.items()) if per}
+            rolls = {i: per for i, per in ((i, [r for k, r in enumerate(per) if (i, k) not in far_rolls]) for i, per in rolls.items()) if per}
+            if not strokes and not rolls:
                 return sol
-        solve["strokes"] = strokes
+        solve["strokes"], solve["rolls"] = strokes, rolls
         sol = again
     return sol
 
@@ -328,6 +335,21 @@ def _far_strokes(sol: JointSolution, strokes: dict[int, list]) -> set[tuple[int,
                 continue
             uv = project_distorted(view, apply(sol.carm_from_marker[i], anchors), sol.detector_distortion_px)
             if np.any(np.abs(np.sum(uv * normals, axis=1) - offsets) > STROKE_OUTLIER_CHI * STROKE_SIGMA_PX):
+                far.add((i, k))
+    return far
+
+
+def _far_rolls(sol: JointSolution, rolls: dict[int, list]) -> set[tuple[int, int]]:
+    """(marker id, index in its list) of the rolls that ``sol`` leaves over ``STROKE_OUTLIER_CHI`` sigmas from their
+    measure (a marker the solve rejected: all of its rolls): the shadow matched with a neighbour's over it."""
+    far = set()
+    for i, per in rolls.items():
+        for k, (view, near, far_mm, normal, apart, sigma) in enumerate(per):
+            if i not in sol.carm_from_marker:
+                far.add((i, k))
+                continue
+            uv = view.project(apply(sol.carm_from_marker[i], np.stack([near, far_mm])))
+            if abs(float(normal @ (uv[0] - uv[1])) - apart) > STROKE_OUTLIER_CHI * sigma:
                 far.add((i, k))
     return far
 
