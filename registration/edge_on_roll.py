@@ -38,8 +38,9 @@ __all__ = ["RingRoll", "measure_ring_roll", "rolled_about", "ROLL_SIGMA_DEG"]
 ROLL_REACH_DEG = 10.0
 ROLL_STEP_DEG = 0.5
 # How far the shadow is slid both ways in the image (px) at each angle: the solve's pose places the marker within a
-# few millimetres.
-SHIFT_PX = 15
+# few millimetres, though a marker held in a lateral view by BBs claimed along a wrong line (no stroke taken there) lay
+# 3 mm (21 px) across it (seed 12000 flat, second pose).
+SHIFT_PX = 30
 # The rendered shadow is blurred by this (px, 1 sigma) before it is matched: the focal spot and the detector.
 BLUR_PX = 1.0
 # The rendered window's margin around the ring's image (px).
@@ -62,7 +63,8 @@ class RingRoll:
     sigma_px : its noise (``ROLL_SIGMA_DEG`` through the ring's opening per degree there).
     roll_deg : how far that pose is turned from the given one, about the marker's in-plane axis ``axis_mm`` (3,).
     correlation : the normalised correlation of shadow and image at the best angle; ``runner_up`` at the best other
-        peak more than two steps away (0 where there is none).
+        peak more than two steps away (0 where there is none), ``runner_up_apart_px`` the separation at its angle
+        (refined alike; NaN where there is none): nearly edge-on, the same turn the other way can match about as well.
     """
 
     near_mm: NDArray[np.float64]
@@ -74,6 +76,7 @@ class RingRoll:
     axis_mm: NDArray[np.float64]
     correlation: float
     runner_up: float
+    runner_up_apart_px: float
 
 
 def rolled_about(carm_from_marker: NDArray[np.float64], axis_mm: NDArray[np.float64], centre_mm: NDArray[np.float64], deg: float) -> NDArray[np.float64]:
@@ -95,7 +98,7 @@ def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from
     _, sv, vt = np.linalg.svd(ring_px - centre, full_matrices=False)
     if not sv[0] > 0 or sv[1] > EDGE_ON_STROKE_RATIO * sv[0]:
         return None
-    along = vt[0]
+    along = vt[0] if vt[0][np.argmax(np.abs(vt[0]))] > 0 else -vt[0]  # one sense for poses near each other
     normal = np.array([-along[1], along[0]])
     reach = (ring_px - centre) @ along
     axis = ring_mm[int(np.argmax(reach))] - ring_mm[int(np.argmin(reach))]
@@ -121,11 +124,16 @@ def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from
     best = float(scores[k])
     if best < MIN_CORRELATION or k in (0, len(angles) - 1):
         return None
-    a, b, c = scores[k - 1], scores[k], scores[k + 1]
-    frac = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
-    roll = float(angles[k] + np.clip(frac, -0.5, 0.5) * ROLL_STEP_DEG)
+
+    def refined(j: int) -> float:
+        a, b, c = scores[j - 1], scores[j], scores[j + 1]
+        frac = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
+        return float(angles[j] + np.clip(frac, -0.5, 0.5) * ROLL_STEP_DEG)
+
+    roll = refined(k)
     peaks = [j for j in range(1, len(angles) - 1) if scores[j] >= scores[j - 1] and scores[j] >= scores[j + 1] and abs(j - k) > 2]
-    runner_up = max((float(scores[j]) for j in peaks), default=0.0)
+    second = max(peaks, key=lambda j: scores[j]) if peaks else None
+    runner_up = float(scores[second]) if second is not None else 0.0
 
     def apart(deg: float) -> float:
         uv = view.project(apply(rolled_about(carm_from_marker, axis, centre_mm, deg), np.stack([near, far])))
@@ -133,4 +141,4 @@ def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from
 
     slope = (apart(roll + 0.05) - apart(roll - 0.05)) / 0.1  # px per degree
     return RingRoll(near_mm=near, far_mm=far, normal=normal, apart_px=apart(roll), sigma_px=abs(slope) * ROLL_SIGMA_DEG, roll_deg=roll, axis_mm=axis,
-                    correlation=best, runner_up=runner_up)
+                    correlation=best, runner_up=runner_up, runner_up_apart_px=apart(refined(second)) if second is not None else float("nan"))

@@ -281,37 +281,44 @@ STROKE_ROUNDS = 2
 # A stroke farther than this (in its sigmas) from where the solve with it puts its anchor is left out, and the
 # round solved again without it (a neighbour's stroke or a K-wire matched instead).
 STROKE_OUTLIER_CHI = 4.0
+# A roll whose runner-up angle matches the image within this share of its best is settled by the fit
+# (:func:`_settle_rolls`): taken at the angle whose fit is better by ROLL_DELTA_CHI2 (in units of the fit's reduced
+# chi-square, at least 1), else left out.
+ROLL_AMBIGUOUS_RATIO = 0.8
+ROLL_DELTA_CHI2 = 9.0
 
 
 def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict, starts: dict[int, NDArray[np.float64]],
                   marker_set: MarkerSet) -> JointSolution:
     """``sol`` solved again with the ring strokes (:func:`.edge_on_ring.measure_ring_stroke`) of its markers in the views
     where they show fewer than ``STROKE_BELOW_BBS`` BBs, and with their rolls (:func:`.edge_on_roll.measure_ring_roll`)
-    in every view where they are edge-on; ``solve`` (joint_solve's other arguments) takes both, so later solves keep
-    them. ``sol`` as it is where the poses carry no images or nothing is measured."""
+    in every view where they are edge-on (:func:`_settle_rolls`); ``solve`` (joint_solve's other arguments) takes
+    both, so later solves keep them. ``sol`` as it is where the poses carry no images or nothing is measured."""
     images = next((p.view_images for p in every.values() if p.view_images), ())
     if len(images) < 2:
         return sol
     for _ in range(STROKE_ROUNDS):
         strokes: dict[int, list] = {}
-        rolls: dict[int, list] = {}
+        measured: dict[int, list] = {}
         for i in sol.used_ids:
             shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
             design = marker_set.by_id(i)
             for view, image in images:
                 roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design)
                 if roll is not None:
-                    rolls.setdefault(i, []).append((view, roll.near_mm, roll.far_mm, roll.normal, roll.apart_px, roll.sigma_px))
+                    measured.setdefault(i, []).append((view, roll))
                 if shown.get(id(view), 0) >= STROKE_BELOW_BBS:
                     continue
                 found = measure_ring_stroke(image, view, sol.carm_from_marker[i], design)
                 if found:
                     strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
                                                       np.array([st.offset_px for st in found])))
-        if not strokes and not rolls:
+        if not strokes and not measured:
             return sol
+        start = dict(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker})
+        rolls = _settle_rolls(measured, {**solve, **start, "strokes": strokes})
         while True:
-            again = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker}, **{**solve, "strokes": strokes, "rolls": rolls})
+            again = joint_solve(**start, **{**solve, "strokes": strokes, "rolls": rolls})
             far, far_rolls = _far_strokes(again, strokes), _far_rolls(again, rolls)
             if not far and not far_rolls:
                 break
@@ -322,6 +329,45 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
         solve["strokes"], solve["rolls"] = strokes, rolls
         sol = again
     return sol
+
+
+def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool]) -> dict[int, list]:
+    """joint_solve's ``rolls`` from the measured rolls {marker id: [(view, RingRoll), ...]}: each at its best angle, or
+    at its runner-up where ``choice`` says True for (marker id, index); those ``choice`` maps to None are left out."""
+    out: dict[int, list] = {}
+    for i, per in measured.items():
+        for k, (view, r) in enumerate(per):
+            pick = choice.get((i, k), False)
+            if pick is None:
+                continue
+            out.setdefault(i, []).append((view, r.near_mm, r.far_mm, r.normal, r.runner_up_apart_px if pick else r.apart_px, r.sigma_px))
+    return out
+
+
+def _settle_rolls(measured: dict[int, list], solve: dict) -> dict[int, list]:
+    """The rolls the joint solve takes: nearly edge-on, a marker's shadow turned the other way can match about as well
+    (its runner-up within ``ROLL_AMBIGUOUS_RATIO`` of its best), and the image alone cannot tell which; each such roll
+    is then solved at either angle with the others at their best, and taken at the one whose fit is better by
+    ``ROLL_DELTA_CHI2`` (the camera's constellation and the other markers' rolls tell), else left out."""
+    choice: dict[tuple[int, int], bool | None] = {}
+    ambiguous = [(i, k) for i, per in measured.items() for k, (_, r) in enumerate(per)
+                 if r.runner_up >= ROLL_AMBIGUOUS_RATIO * r.correlation and np.isfinite(r.runner_up_apart_px)]
+    if not ambiguous:
+        return _roll_rows(measured, choice)
+    base = joint_solve(**{**solve, "rolls": _roll_rows(measured, choice)})
+    for key in ambiguous:
+        other = joint_solve(**{**solve, "rolls": _roll_rows(measured, {**choice, key: True})})
+        margin = ROLL_DELTA_CHI2 * max(1.0, min(base.reduced_chi2, other.reduced_chi2))
+        import os
+        if os.environ.get("DRILLNAV_ROLL_DEBUG"):
+            print("ROLLDBG", key, "best", round(base.chi2, 1), "other", round(other.chi2, 1), "red", round(base.reduced_chi2, 2), round(other.reduced_chi2, 2), "ratio", round(measured[key[0]][key[1]][1].runner_up / measured[key[0]][key[1]][1].correlation, 3))
+        if other.chi2 < base.chi2 - margin:
+            choice[key] = True
+            base = other
+        elif other.chi2 <= base.chi2 + margin:
+            choice[key] = None
+            base = joint_solve(**{**solve, "rolls": _roll_rows(measured, choice)})
+    return _roll_rows(measured, choice)
 
 
 def _far_strokes(sol: JointSolution, strokes: dict[int, list]) -> set[tuple[int, int]]:
