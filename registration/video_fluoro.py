@@ -304,7 +304,8 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
             shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
             design = marker_set.by_id(i)
             for view, image in images:
-                roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design)
+                # On one marker nothing checks a roll: a weak match turned seed 11901's lone marker 12 deg (flat, AP+lateral).
+                roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design) if len(sol.used_ids) >= 2 else None
                 if roll is not None:
                     measured.setdefault(i, []).append((view, roll))
                 if shown.get(id(view), 0) >= STROKE_BELOW_BBS:
@@ -358,9 +359,6 @@ def _settle_rolls(measured: dict[int, list], solve: dict) -> dict[int, list]:
     for key in ambiguous:
         other = joint_solve(**{**solve, "rolls": _roll_rows(measured, {**choice, key: True})})
         margin = ROLL_DELTA_CHI2 * max(1.0, min(base.reduced_chi2, other.reduced_chi2))
-        import os
-        if os.environ.get("DRILLNAV_ROLL_DEBUG"):
-            print("ROLLDBG", key, "best", round(base.chi2, 1), "other", round(other.chi2, 1), "red", round(base.reduced_chi2, 2), round(other.reduced_chi2, 2), "ratio", round(measured[key[0]][key[1]][1].runner_up / measured[key[0]][key[1]][1].correlation, 3))
         if other.chi2 < base.chi2 - margin:
             choice[key] = True
             base = other
