@@ -304,16 +304,18 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
             shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
             design = marker_set.by_id(i)
             for view, image in images:
-                # On one marker nothing checks a roll: a weak match turned seed 11901's lone marker 12 deg (flat, AP+lateral).
-                roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design) if len(sol.used_ids) >= 2 else None
-                if roll is not None:
-                    measured.setdefault(i, []).append((view, roll))
-                if shown.get(id(view), 0) >= STROKE_BELOW_BBS:
-                    continue
-                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], design)
+                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], design) if shown.get(id(view), 0) < STROKE_BELOW_BBS else ()
                 if found:
                     strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
                                                       np.array([st.offset_px for st in found])))
+                # A roll is measured where the view shows the marker (its BBs, or its stroke), on two markers or more. Where
+                # the view showed neither, its shadow was matched wherever the solve put it: seed 14000's random pair
+                # (default twin), marker 12 turned 8 deg, the axis 0.25 -> 9.0 mm off. On one marker nothing checks a roll:
+                # a weak match turned seed 11901's lone marker 12 deg (flat, AP+lateral).
+                if len(sol.used_ids) >= 2 and (shown.get(id(view), 0) or found):
+                    roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design)
+                    if roll is not None:
+                        measured.setdefault(i, []).append((view, roll))
         if not strokes and not measured:
             return sol
         start = dict(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker})
@@ -332,7 +334,7 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
     return sol
 
 
-def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool]) -> dict[int, list]:
+def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool | None]) -> dict[int, list]:
     """joint_solve's ``rolls`` from the measured rolls {marker id: [(view, RingRoll), ...]}: each at its best angle, or
     at its runner-up where ``choice`` says True for (marker id, index); those ``choice`` maps to None are left out."""
     out: dict[int, list] = {}
@@ -348,8 +350,9 @@ def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool]) -
 def _settle_rolls(measured: dict[int, list], solve: dict) -> dict[int, list]:
     """The rolls the joint solve takes: nearly edge-on, a marker's shadow turned the other way can match about as well
     (its runner-up within ``ROLL_AMBIGUOUS_RATIO`` of its best), and the image alone cannot tell which; each such roll
-    is then solved at either angle with the others at their best, and taken at the one whose fit is better by
-    ``ROLL_DELTA_CHI2`` (the camera's constellation and the other markers' rolls tell), else left out."""
+    is then solved at either angle with the others as settled so far (at their best at first), and taken at the one
+    whose fit is better by ``ROLL_DELTA_CHI2`` (the camera's constellation and the other markers' rolls tell), else
+    left out."""
     choice: dict[tuple[int, int], bool | None] = {}
     ambiguous = [(i, k) for i, per in measured.items() for k, (_, r) in enumerate(per)
                  if r.runner_up >= ROLL_AMBIGUOUS_RATIO * r.correlation and np.isfinite(r.runner_up_apart_px)]
