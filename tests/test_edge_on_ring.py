@@ -14,24 +14,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import study_shot  # noqa: E402  (tests/: the study's scene, marker poses and shot)
+from twin_images import flat_marker_scene, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
 
-from drillnav.drivers.sim.degradations import Degradations
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
 from drillnav.registration.edge_on_ring import measure_ring_stroke
 from drillnav.registration.transforms import apply, from_rotvec
-
-
-def _flat_scene(seed: int):
-    scene = make_scene(seed=seed, views="ap,lateral", render=False, degradations=Degradations(surgeon_markers=True, marker_tilt_deg=(0.0, 10.0)))
-    images = {n: render_fluoro(scene, n, np.random.default_rng([seed, 1])) for n in scene.views}
-    return scene, images
 
 
 def test_a_stroke_is_found_where_the_ring_lies_from_a_pose_millimetres_off_and_a_face_on_ring_gives_none():
     measured = 0
     for seed in (8, 9, 15):
-        scene, images = _flat_scene(seed)
+        scene, images = flat_marker_scene(seed)
         ap, lateral = scene.views["ap"], scene.views["lateral"]
         rng = np.random.default_rng(seed)
         for i, truth in scene.carm_from_marker.items():
@@ -53,7 +46,7 @@ def test_a_stroke_is_found_where_the_ring_lies_from_a_pose_millimetres_off_and_a
 def test_a_stroke_half_outside_the_image_gives_none():
     """One half alone is not taken: on the twin a lone half matched something else (a neighbour's stroke, a K-wire)
     tens of pixels off, where two halves that agree did not."""
-    scene, images = _flat_scene(8)
+    scene, images = flat_marker_scene(8)
     lateral = scene.views["lateral"]
     i, truth, both = next((i, t, s) for i, t in scene.carm_from_marker.items()
                           if len(s := measure_ring_stroke(images["lateral"], lateral, t, scene.marker_set.by_id(i))) == 2)
@@ -96,7 +89,7 @@ def test_a_slope_under_the_stroke_changes_nothing():
     ring's shadow: each window's straight-line trend is taken out before the profiles are compared. With the mean
     alone taken out, 37 of 80 edge-on rings in the flat-marker twin's lateral views (17 seeds, from poses 3 mm off)
     had a half under the correlation bar; with the trend, 18."""
-    scene, images = _flat_scene(8)
+    scene, images = flat_marker_scene(8)
     lateral = scene.views["lateral"]
     i, truth, both = next((i, t, s) for i, t in scene.carm_from_marker.items()
                           if len(s := measure_ring_stroke(images["lateral"], lateral, t, scene.marker_set.by_id(i))) == 2)

@@ -13,25 +13,18 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import study_shot  # noqa: E402  (tests/: the study's scene, marker poses and shot)
+from twin_images import flat_marker_scene, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
 
-from drillnav.drivers.sim.degradations import Degradations
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
 from drillnav.registration import video_fluoro
 from drillnav.registration.edge_on_roll import measure_ring_roll, rolled_about
 from drillnav.registration.transforms import apply
 
 
-def _flat_scene(seed: int):
-    scene = make_scene(seed=seed, views="ap,lateral", render=False, degradations=Degradations(surgeon_markers=True, marker_tilt_deg=(0.0, 10.0)))
-    images = {n: render_fluoro(scene, n, np.random.default_rng([seed, 1])) for n in scene.views}
-    return scene, images
-
-
 def test_a_turn_about_the_line_is_found_from_a_pose_turned_either_way_and_a_face_on_ring_gives_none():
     measured = []
     for seed in (8, 9, 15):
-        scene, images = _flat_scene(seed)
+        scene, images = flat_marker_scene(seed)
         ap, lateral = scene.views["ap"], scene.views["lateral"]
         rng = np.random.default_rng(seed)
         for i, truth in scene.carm_from_marker.items():
@@ -56,7 +49,7 @@ def test_a_turn_about_the_line_is_found_from_a_pose_turned_either_way_and_a_face
 
 
 def test_a_shadow_whose_window_leaves_the_image_gives_none():
-    scene, images = _flat_scene(8)
+    scene, images = flat_marker_scene(8)
     lateral = scene.views["lateral"]
     i, truth = next((i, t) for i, t in scene.carm_from_marker.items()
                     if measure_ring_roll(images["lateral"], lateral, t, scene.marker_set.by_id(i)) is not None)
@@ -122,7 +115,7 @@ def test_a_roll_row_narrows_the_turn_the_face_on_view_leaves_open_and_a_bad_sigm
     from drillnav.registration.joint_solve import joint_solve
     from drillnav.registration.transforms import invert
 
-    scene, images = _flat_scene(8)
+    scene, images = flat_marker_scene(8)
     ap, lateral = scene.views["ap"], scene.views["lateral"]
     camera = scene.calibrated_camera
     drill_from_carm = invert(scene.carm_from_drill)

@@ -156,3 +156,13 @@ def study_shot(seed: int, pair: str, pose_index: int, *, marker_tilt_deg: tuple[
     poses = tuple(register_markers([dets[n] for n in names], [scene.views[n] for n in names], scene.marker_set))
     pose, video, image = accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index]
     return scene, poses, pose, video, image
+
+
+def flat_marker_scene(seed: int):
+    """The twin with the markers stuck flat on the skin (0-10 deg from the AP beam), AP + lateral, and its rendered
+    log images {view name: (H, W)}: every marker face-on in the AP view and near edge-on in the lateral one."""
+    from drillnav.drivers.sim.scene import render_fluoro
+
+    scene = make_scene(seed=seed, views="ap,lateral", render=False, degradations=Degradations(surgeon_markers=True, marker_tilt_deg=(0.0, 10.0)))
+    images = {n: render_fluoro(scene, n, np.random.default_rng([seed, 1])) for n in scene.views}
+    return scene, images
