@@ -15,7 +15,7 @@ Pure math: numpy, scipy and OpenCV's sampling.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -26,7 +26,7 @@ from .carm import CArmView
 from .markers import MarkerDesign
 from .transforms import apply
 
-__all__ = ["RingStroke", "measure_ring_stroke", "EDGE_ON_STROKE_RATIO"]
+__all__ = ["RingStroke", "measure_ring_stroke", "EDGE_ON_STROKE_RATIO", "STROKE_SIGMA_PX"]
 
 # A ring whose projected ellipse is flatter than this (minor over major half-axis) is measured as a stroke. Flatter
 # than fluoro_markers' EDGE_ON_MINOR_RATIO (0.12), the detector gives up on its pattern; the stroke is still sharp.
@@ -49,6 +49,18 @@ MIN_SEPARATION_PX = 4.0
 # (seed 3000, flat markers; 48 flat seeds' AP+lateral median 0.86 -> 0.80 mm), but also halves one of which lay 2.4-4.6
 # px off (seed 13301, first pose: 1.25 mm under a 4.2 mm bound, flagged -> 4.39 mm under 1.85 mm, reliable).
 HALF_AGREEMENT_PX = 3.0
+# The noise (px, 1 sigma) of a half-stroke whose other half agrees: against the twin's truth, 26 half-strokes of 13
+# seeds' flat lateral views, from poses 3 mm off along the AP beam and 1 deg askew, were off by 0.71 px median, 1.17
+# px at the 90th percentile, 1.87 px at most.
+STROKE_SIGMA_PX = 1.0
+# Two halves farther apart than HALF_AGREEMENT_PX, up to this, give their middle: the ring's centre, where a turn of
+# the line moves neither, at a noise that counts half their disagreement (one of them may be biased by as much).
+CENTRE_AGREEMENT_PX = 8.0
+# A half alone (the other outside the image, or matched poorly) is taken when it matches this well, at this noise.
+# From poses 3 mm off along the AP beam and 2 deg askew (17 flat seeds' lateral views), lone halves at 0.85 or more
+# were off by up to 2.3 px, 6 of 9 over 1 px; under 0.8, 5 of 8 were over 2 px and one 17 px.
+LONE_MIN_CORRELATION = 0.85
+LONE_SIGMA_PX = 2.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -59,7 +71,9 @@ class RingStroke:
     normal : (2,) the unit image direction across the stroke.
     offset_px : where the anchor's image lies along ``normal`` (``normal @ uv``), as measured.
     predicted_px : the same at the pose the stroke was looked for from.
-    correlation : the normalised correlation of the measured and predicted profiles at the match.
+    correlation : the normalised correlation of the measured and predicted profiles at the match (the lower of two
+        halves for the ring's centre).
+    sigma_px : the measurement's noise (1 sigma) along ``normal``.
     """
 
     anchor_mm: NDArray[np.float64]
@@ -67,6 +81,7 @@ class RingStroke:
     offset_px: float
     predicted_px: float
     correlation: float
+    sigma_px: float
 
 
 def _profile_template(view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, grid_px: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -104,10 +119,12 @@ def _ncc(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> ND
 
 
 def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, *,
-                        search_px: float = SEARCH_PX) -> tuple[RingStroke, ...]:
+                        search_px: float = SEARCH_PX, lone_half: bool = True) -> tuple[RingStroke, ...]:
     """The halves of ``design``'s ring stroke that the image (log attenuation, bright where dense) shows near where
-    ``carm_from_marker`` (4, 4) puts it: both halves, each inside the image and matched unambiguously, their shifts
-    within ``HALF_AGREEMENT_PX``; () otherwise, or where the ring is not edge-on (:data:`EDGE_ON_STROKE_RATIO`)."""
+    ``carm_from_marker`` (4, 4) puts it, each half inside the image and matched unambiguously: both halves where their
+    shifts agree within ``HALF_AGREEMENT_PX``; the ring's centre where they differ by up to ``CENTRE_AGREEMENT_PX``;
+    one half alone where the other is not found and it matches to ``LONE_MIN_CORRELATION`` (and ``lone_half``); ()
+    otherwise, or where the ring is not edge-on (:data:`EDGE_ON_STROKE_RATIO`)."""
     ring_mm = design.ring_points_mm(256)
     ring_px = view.project(apply(carm_from_marker, ring_mm))
     centre = ring_px.mean(axis=0)
@@ -155,13 +172,27 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
         # The half's middle, as a point of the marker: half way from the ring's centre to that end of the stroke.
         anchor = _anchor_mm(ring_mm, ring_px, sign * along, design)
         predicted = float(normal @ view.project(apply(carm_from_marker, anchor[None]))[0])
-        out.append(RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=predicted + shift, predicted_px=predicted, correlation=best))
-    # Both halves, where they agree: one half alone, or two that disagree, matched something else at least once (a
-    # neighbour's stroke, the other side of a ring's thin ellipse, a K-wire), tens of pixels off on the twin.
-    shifts = [st.offset_px - st.predicted_px for st in out]
-    if len(out) != 2 or abs(shifts[0] - shifts[1]) > HALF_AGREEMENT_PX:
+        out.append(RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=predicted + shift, predicted_px=predicted, correlation=best,
+                              sigma_px=STROKE_SIGMA_PX))
+    # Two halves that agree, each at its own noise. Two that disagree a little give the ring's centre, their middle
+    # (a turn of the pose about the beam parts the halves, and moves the centre not at all), at a noise that counts
+    # the disagreement; farther apart, one matched something else (a neighbour's stroke, the other side of a ring's
+    # thin ellipse, a K-wire): tens of pixels off on the twin. A half alone is taken only where it matches well.
+    if len(out) == 1:
+        lone = out[0]
+        return (replace(lone, sigma_px=LONE_SIGMA_PX),) if lone_half and lone.correlation >= LONE_MIN_CORRELATION else ()
+    if len(out) != 2:
         return ()
-    return tuple(out)
+    shifts = [st.offset_px - st.predicted_px for st in out]
+    apart = abs(shifts[0] - shifts[1])
+    if apart <= HALF_AGREEMENT_PX:
+        return tuple(out)
+    if apart > CENTRE_AGREEMENT_PX:
+        return ()
+    centre_mm = np.asarray(design.ring_center_mm, dtype=np.float64)
+    predicted = float(normal @ view.project(apply(carm_from_marker, centre_mm[None]))[0])
+    return (RingStroke(anchor_mm=centre_mm, normal=normal.copy(), offset_px=predicted + 0.5 * (shifts[0] + shifts[1]), predicted_px=predicted,
+                       correlation=min(st.correlation for st in out), sigma_px=float(np.hypot(STROKE_SIGMA_PX, 0.5 * apart))),)
 
 
 def _anchor_mm(ring_mm: NDArray[np.float64], ring_px: NDArray[np.float64], toward: NDArray[np.float64], design: MarkerDesign) -> NDArray[np.float64]:

@@ -113,10 +113,6 @@ BB_SCALE_SIGMA_PX = 0.24
 # twin's truth (every fluoroscopy degradation but the intensifier's, seeds 6100-6102, every pair: RMS 3.55 px
 # under 0.8, 1.23 px at 1.0-1.2, 0.73 px at 1.2-1.5, 0.48-0.56 px beyond, less the 0.5 px of the rest).
 CROWDED_BB_PX = (np.array([0.8, 1.1, 1.35, 1.6]), np.array([3.5, 1.1, 0.5, 0.0]))
-# The noise (px, 1 sigma) of an edge-on ring's stroke measured across its line (:mod:`.edge_on_ring`): against the
-# twin's truth, 26 half-strokes of 13 seeds' flat lateral views, from poses 3 mm off along the AP beam and 1 deg
-# askew, were off by 0.71 px median, 1.17 px at the 90th percentile, 1.87 px at most.
-STROKE_SIGMA_PX = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -196,7 +192,6 @@ def joint_solve(
     fluoro_only: dict[int, tuple[tuple, NDArray[np.float64]]] | None = None,
     give_up_above_chi2: float | None = None,
     strokes: dict[int, tuple] | None = None,
-    stroke_sigma_px: float = STROKE_SIGMA_PX,
     rolls: dict[int, tuple] | None = None,
     refine: bool = True,
 ) -> JointSolution:
@@ -232,10 +227,10 @@ def joint_solve(
     ``give_up_above_chi2``: when the first plain fit is not clean and its chi-square exceeds this, that fit is
     returned as it is, with no robust rounds, rejection or vote (a caller that only wants a solution fitting about as
     well as one it has: the mirror start of a single view, :func:`.video_fluoro._settle_constellation_mirror`).
-    ``strokes``: {marker id: ((CArmView, anchors (K, 3) mm in the marker frame, normals (K, 2), offsets (K,) px), ...)}:
-    where an edge-on marker's ring stroke lies across its line (:func:`.edge_on_ring.measure_ring_stroke`), each
-    anchor's image along its normal, with ``stroke_sigma_px`` noise; they count in no marker's chi, so they reject
-    no marker.
+    ``strokes``: {marker id: ((CArmView, anchors (K, 3) mm in the marker frame, normals (K, 2), offsets (K,) px,
+    sigmas (K,) px), ...)}: where an edge-on marker's ring stroke lies across its line
+    (:func:`.edge_on_ring.measure_ring_stroke`), each anchor's image along its normal, with its own noise; they count
+    in no marker's chi, so they reject no marker.
     ``rolls``: {marker id: ((CArmView, near (3,) mm and far (3,) mm in the marker frame, normal (2,), apart px, sigma px), ...)}:
     where an edge-on marker's shadow shows it turned about its own line (:func:`.edge_on_roll.measure_ring_roll`),
     how far apart across the line the two points' images lie, with its own noise; like strokes, they reject no marker.
@@ -266,10 +261,8 @@ def joint_solve(
     if not all(np.isfinite(v) for v in corner_extra.values()):
         raise ValueError(f"a tag's extra corner noise must be finite, got {corner_extra}")
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
-    if not stroke_sigma_px > 0:
-        raise ValueError(f"the stroke sigma must be > 0 px, got {stroke_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, anchors, dict(strokes or {}), float(stroke_sigma_px), dict(rolls or {}))
+            crowded_bbs, corner_extra, anchors, dict(strokes or {}), dict(rolls or {}))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
@@ -636,7 +629,7 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], anchors: dict, strokes: dict, stroke_sigma_px: float, rolls: dict, *, loss: str,
+           corner_extra: dict[int, float], anchors: dict, strokes: dict, rolls: dict, *, loss: str,
            max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
@@ -688,10 +681,14 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     c_extra = [np.full(int(keep.sum()), corner_extra.get(i, 0.0)) for i, keep in zip(ids, c_keep)] if any(i in corner_extra for i in ids) else None
     wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra)
     # Ring strokes of edge-on markers (the camera's markers only): one row each, an anchor's image along a normal.
-    s_rows = [(k, view, np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1))
-              for k, i in enumerate(ids) for view, a, nv, o in strokes.get(i, ())]
+    s_rows = [(k, view, np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1),
+               np.asarray(sg, dtype=np.float64).reshape(-1))
+              for k, i in enumerate(ids) for view, a, nv, o, sg in strokes.get(i, ())]
     n_s = sum(len(r[4]) for r in s_rows)
     if n_s:
+        s_sigma = np.concatenate([r[5] for r in s_rows])
+        if len(s_sigma) != n_s or not np.all(s_sigma > 0) or not np.all(np.isfinite(s_sigma)):
+            raise ValueError(f"each stroke needs one finite sigma > 0 px, got {s_sigma}")
         s_obj = np.concatenate([r[2] for r in s_rows])
         s_nrm = np.concatenate([r[3] for r in s_rows])
         s_off = np.concatenate([r[4] for r in s_rows])
@@ -775,7 +772,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         if n_dv and np.any(s_has):
             coef_s = xs[:, i_dist:].reshape(n, n_dv, 2)[:, s_dv[s_has]]
             uvs[:, s_has] += intensifier_shift_px(uvs[:, s_has], s_center[s_has], s_corner_r[s_has][:, None], coef_s)
-        return (np.sum(uvs * s_nrm, axis=-1) - s_off) / stroke_sigma_px
+        return (np.sum(uvs * s_nrm, axis=-1) - s_off) / s_sigma
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
     # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at

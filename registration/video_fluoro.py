@@ -34,7 +34,7 @@ from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
 from .edge_on_ring import measure_ring_stroke
 from .edge_on_roll import measure_ring_roll
-from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, STROKE_SIGMA_PX, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
+from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose, planar_candidates
 from .markers import MarkerSet
@@ -304,10 +304,13 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
             shown = {id(o[0]): len(o[1]) for o in solve["observations"].get(i, ())}
             design = marker_set.by_id(i)
             for view, image in images:
-                found = measure_ring_stroke(image, view, sol.carm_from_marker[i], design) if shown.get(id(view), 0) < STROKE_BELOW_BBS else ()
+                # A half-stroke alone has nothing in it to check it, so it is taken only where another marker can:
+                # on one marker, seed 10802's marker 43 (flat, AP+lateral, second pose) took a half 20 px off.
+                found = (measure_ring_stroke(image, view, sol.carm_from_marker[i], design, lone_half=len(sol.used_ids) >= 2)
+                         if shown.get(id(view), 0) < STROKE_BELOW_BBS else ())
                 if found:
                     strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
-                                                      np.array([st.offset_px for st in found])))
+                                                      np.array([st.offset_px for st in found]), np.array([st.sigma_px for st in found])))
                 # A roll is measured where the view shows the marker (its BBs, or its stroke), on two markers or more. Where
                 # the view showed neither, its shadow was matched wherever the solve put it: seed 14000's random pair
                 # (default twin), marker 12 turned 8 deg, the axis 0.25 -> 9.0 mm off. On one marker nothing checks a roll:
@@ -376,12 +379,12 @@ def _far_strokes(sol: JointSolution, strokes: dict[int, list]) -> set[tuple[int,
     ``sol`` puts them (a marker the solve rejected: all of its strokes)."""
     far = set()
     for i, per in strokes.items():
-        for k, (view, anchors, normals, offsets) in enumerate(per):
+        for k, (view, anchors, normals, offsets, sigmas) in enumerate(per):
             if i not in sol.carm_from_marker:
                 far.add((i, k))
                 continue
             uv = project_distorted(view, apply(sol.carm_from_marker[i], anchors), sol.detector_distortion_px)
-            if np.any(np.abs(np.sum(uv * normals, axis=1) - offsets) > STROKE_OUTLIER_CHI * STROKE_SIGMA_PX):
+            if np.any(np.abs(np.sum(uv * normals, axis=1) - offsets) > STROKE_OUTLIER_CHI * sigmas):
                 far.add((i, k))
     return far
 
