@@ -57,8 +57,8 @@ STROKE_SIGMA_PX = 1.0
 # the line moves neither, at a noise that counts half their disagreement (one of them may be biased by as much).
 CENTRE_AGREEMENT_PX = 8.0
 # A half alone (the other outside the image, or matched poorly) is taken when it matches this well, at this noise.
-# From poses 3 mm off along the AP beam and 2 deg askew (17 flat seeds' lateral views), lone halves at 0.85 or more
-# were off by up to 2.3 px, 6 of 9 over 1 px; under 0.8, 5 of 8 were over 2 px and one 17 px.
+# From poses 3 mm off along the AP beam and 2 deg askew (17 flat seeds' lateral views), of 12 lone halves at 0.85 or
+# more 7 were over 1 px off, 2 over 2 px, 4.0 px at most; of 8 under 0.8, 5 were over 2 px and one 17 px.
 LONE_MIN_CORRELATION = 0.85
 LONE_SIGMA_PX = 2.5
 
