@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import flat_marker_scene, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
+from twin_images import flat_marker_scene, strokes_as_agreeing_pairs_only, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
 
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
-from drillnav.registration import edge_on_ring, video_fluoro
+from drillnav.registration import video_fluoro
 from drillnav.registration.edge_on_roll import measure_ring_roll, rolled_about
 from drillnav.registration.transforms import apply
 
@@ -68,8 +68,7 @@ def test_two_flat_markers_along_the_lateral_line_are_no_longer_free_to_turn_abou
     without the rolls too, so the scene would no longer show what the rolls do."""
     import accuracy
 
-    monkeypatch.setattr(edge_on_ring, "LONE_MIN_CORRELATION", 2.0)
-    monkeypatch.setattr(edge_on_ring, "CENTRE_AGREEMENT_PX", edge_on_ring.HALF_AGREEMENT_PX)
+    strokes_as_agreeing_pairs_only(monkeypatch)
 
     scene, poses, pose, video, image = study_shot(SEED, "ap+lateral", POSE, marker_tilt_deg=(0.0, 10.0))
     entry = scene.corridor_entry_carm_mm
@@ -114,7 +113,7 @@ def test_a_roll_row_narrows_the_turn_the_face_on_view_leaves_open_and_a_bad_sigm
     """The joint solve on exact AP BBs and tag corners of flat markers: the drill's turn about the patient's long axis
     (the line the edge-on rings make in the lateral view) is left to the face-on BBs' foreshortening and the tags; a
     roll row per marker in the lateral view, at the truth, narrows it (seed 8's five markers: 0.20 -> 0.15 deg, 1
-    sigma) and leaves the solution where it was."""
+    sigma) and leaves the solution where it was. A roll or a stroke row with no noise stated is refused."""
     import pytest
 
     from drillnav.registration.joint_solve import joint_solve
@@ -145,3 +144,10 @@ def test_a_roll_row_narrows_the_turn_the_face_on_view_leaves_open_and_a_bad_sigm
     bad = {i: ((view, a, b, n, d, 0.0),) for i, ((view, a, b, n, d, _),) in rolls.items()}
     with pytest.raises(ValueError, match="roll"):
         joint_solve(**common, rolls=bad)
+    # A stroke row at the ring's centre, where the truth puts it, but with no noise stated: refused alike.
+    i, ((_, _, _, normal, _, _),) = next(iter(rolls.items()))
+    centre = np.asarray(scene.marker_set.by_id(i).ring_center_mm, dtype=np.float64)[None]
+    offset = normal @ lateral.project(apply(scene.carm_from_marker[i], centre))[0]
+    for sigma in (0.0, np.nan):
+        with pytest.raises(ValueError, match="stroke"):
+            joint_solve(**common, strokes={i: ((lateral, centre, normal[None], np.array([offset]), np.array([sigma])),)})
