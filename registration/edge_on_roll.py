@@ -69,7 +69,8 @@ class RingRoll:
     roll_deg : how far that pose is turned from the given one, about the marker's in-plane axis ``axis_mm`` (3,).
     correlation : the normalised correlation of shadow and image at the best angle; ``runner_up`` at the best other
         peak more than two steps away (0 where there is none), ``runner_up_apart_px`` the separation at its angle
-        (refined alike; NaN where there is none): nearly edge-on, the same turn the other way can match about as well.
+        (refined alike; NaN where there is none), ``runner_up_deg`` its turn from the given pose (NaN where there is
+        none): nearly edge-on, the same turn the other way can match about as well.
     slide_px : how far across the line the shadow at the best angle lay from where the given pose puts it (px).
     """
 
@@ -83,6 +84,7 @@ class RingRoll:
     correlation: float
     runner_up: float
     runner_up_apart_px: float
+    runner_up_deg: float
     slide_px: float
 
 
@@ -93,11 +95,12 @@ def rolled_about(carm_from_marker: NDArray[np.float64], axis_mm: NDArray[np.floa
     return carm_from_marker @ make_transform(rot, c - rot @ c)
 
 
-def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign) -> RingRoll | None:
+def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, *,
+                      min_correlation: float = MIN_CORRELATION) -> RingRoll | None:
     """The roll of ``design``'s marker about its ring's line where ``carm_from_marker`` (4, 4) puts it edge-on in
     ``view`` (its ring's image under :data:`.edge_on_ring.EDGE_ON_STROKE_RATIO` as wide as long), as ``image_log``
     (H, W; log attenuation, bright where dense) shows it; None where the ring is not edge-on, its window with the
-    shifts leaves the image, the match is weaker than ``MIN_CORRELATION``, or its best angle or slide is at the
+    shifts leaves the image, the match is weaker than ``min_correlation``, or its best angle or slide is at the
     search's end (seed 14000's random pair on the default twin: a shadow matched 30 px aside, 8 deg off)."""
     ring_mm = design.ring_points_mm(256)
     centre_mm = np.asarray(design.ring_center_mm, dtype=np.float64)
@@ -132,7 +135,7 @@ def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from
         slides[k] = (at[0] - SHIFT_PX, at[1] - SHIFT_PX)
     k = int(np.argmax(scores))
     best = float(scores[k])
-    if best < MIN_CORRELATION or k in (0, len(angles) - 1) or np.max(np.abs(slides[k])) >= SHIFT_PX:
+    if best < min_correlation or k in (0, len(angles) - 1) or np.max(np.abs(slides[k])) >= SHIFT_PX:
         return None  # no peak inside the search: the turn or the slide
 
     def refined(j: int) -> float:
@@ -152,4 +155,5 @@ def measure_ring_roll(image_log: NDArray[np.floating], view: CArmView, carm_from
     slope = (apart(roll + 0.05) - apart(roll - 0.05)) / 0.1  # px per degree
     return RingRoll(near_mm=near, far_mm=far, normal=normal, apart_px=apart(roll), sigma_px=abs(slope) * ROLL_SIGMA_DEG, roll_deg=roll, axis_mm=axis,
                     correlation=best, runner_up=runner_up, runner_up_apart_px=apart(refined(second)) if second is not None else float("nan"),
+                    runner_up_deg=refined(second) if second is not None else float("nan"),
                     slide_px=float(abs(normal @ slides[k])))

@@ -30,14 +30,15 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
+from .carm import CArmView
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
-from .edge_on_ring import measure_ring_stroke
-from .edge_on_roll import measure_ring_roll
+from .edge_on_ring import RingStroke, measure_ring_stroke
+from .edge_on_roll import RingRoll, measure_ring_roll, rolled_about
 from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose, planar_candidates
-from .markers import MarkerSet
+from .markers import MarkerDesign, MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors, with_claims
 from .video_markers import VideoDetections, VideoMarker
@@ -286,6 +287,13 @@ STROKE_OUTLIER_CHI = 4.0
 # chi-square, at least 1), else left out.
 ROLL_AMBIGUOUS_RATIO = 0.8
 ROLL_DELTA_CHI2 = 9.0
+# A used marker that a view shows by neither its BBs nor its stroke, edge-on there: its stroke's profile, predicted
+# from a pose turned a few degrees about the ring's line, can miss the image (the ring opened into a thin ellipse).
+# Its shadow's best turn is taken down to this correlation, and, with it, the two halves of its stroke found agreeing
+# at the turned pose, each to TURNED_STROKE_CORRELATION; the one bears the other out.
+TURNED_MIN_CORRELATION = 0.3
+TURNED_STROKE_CORRELATION = 0.85
+TURNED_STROKE_MARGIN = 0.05
 
 
 def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict, starts: dict[int, NDArray[np.float64]],
@@ -308,6 +316,11 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
                 # on one marker, seed 10802's marker 43 (flat, AP+lateral, second pose) took a half 20 px off.
                 found = (measure_ring_stroke(image, view, sol.carm_from_marker[i], design, lone_half=len(sol.used_ids) >= 2)
                          if shown.get(id(view), 0) < STROKE_BELOW_BBS else ())
+                # Shown by nothing in this view, the marker is looked for turned as its shadow says: the pose's turn
+                # about the ring's line can leave the stroke's predicted profile off the image's (fresh seed 13300).
+                turned = None
+                if not found and not shown.get(id(view), 0) and len(sol.used_ids) >= 2:
+                    turned, found = _turned_stroke(image, view, sol.carm_from_marker[i], design)
                 if found:
                     strokes.setdefault(i, []).append((view, np.stack([st.anchor_mm for st in found]), np.stack([st.normal for st in found]),
                                                       np.array([st.offset_px for st in found]), np.array([st.sigma_px for st in found])))
@@ -315,9 +328,12 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
                 # the view showed neither, its shadow was matched wherever the solve put it: seed 14000's random pair
                 # (default twin), marker 12 turned 8 deg, the axis 0.25 -> 9.0 mm off. On one marker nothing checks a roll:
                 # a weak match turned seed 11901's lone marker 12 deg (flat, AP+lateral).
-                if len(sol.used_ids) >= 2 and (shown.get(id(view), 0) or found):
+                if turned is not None:
+                    measured.setdefault(i, []).append((view, turned))
+                elif len(sol.used_ids) >= 2 and (shown.get(id(view), 0) or found):
                     roll = measure_ring_roll(image, view, sol.carm_from_marker[i], design)
                     if roll is not None:
+                        roll = _settled_by_stroke(image, view, sol.carm_from_marker[i], design, roll)
                         measured.setdefault(i, []).append((view, roll))
         if not strokes and not measured:
             return sol
@@ -335,6 +351,46 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
         solve["strokes"], solve["rolls"] = strokes, rolls
         sol = again
     return sol
+
+
+def _halves_at(image: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign,
+               roll: RingRoll, deg: float) -> tuple[tuple[RingStroke, ...], float]:
+    """The two halves of ``design``'s stroke found agreeing at ``carm_from_marker`` (4, 4) turned ``deg`` about
+    ``roll``'s axis through the ring's centre, and the weaker half's correlation (-1 where there are not two)."""
+    turned = rolled_about(carm_from_marker, roll.axis_mm, np.asarray(design.ring_center_mm, dtype=np.float64), deg)
+    found = measure_ring_stroke(image, view, turned, design, lone_half=False)
+    return found, (min(h.correlation for h in found) if len(found) == 2 else -1.0)
+
+
+def _settled_by_stroke(image: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign,
+                       roll: RingRoll) -> RingRoll:
+    """``roll`` measured at ``carm_from_marker`` (4, 4), settled where its runner-up turn matched about as well
+    (``ROLL_AMBIGUOUS_RATIO``) and the ring's stroke tells them apart: the two turns open the ring differently, and the
+    stroke's profile at the best turn matches (both halves, to ``TURNED_STROKE_CORRELATION``) better by
+    ``TURNED_STROKE_MARGIN`` than at the runner-up's; then it has no runner-up. ``roll`` as it is otherwise."""
+    if not (np.isfinite(roll.runner_up_deg) and roll.runner_up >= ROLL_AMBIGUOUS_RATIO * roll.correlation):
+        return roll
+    _, best = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
+    _, other = _halves_at(image, view, carm_from_marker, design, roll, roll.runner_up_deg)
+    if best >= TURNED_STROKE_CORRELATION and best > other + TURNED_STROKE_MARGIN:
+        return replace(roll, runner_up=0.0, runner_up_apart_px=float("nan"), runner_up_deg=float("nan"))
+    return roll
+
+
+def _turned_stroke(image: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64],
+                   design: MarkerDesign) -> tuple[RingRoll | None, tuple[RingStroke, ...]]:
+    """The roll and the stroke of an edge-on marker that ``view`` shows by neither its BBs nor its stroke at
+    ``carm_from_marker`` (4, 4): the shadow's best turn (matched down to ``TURNED_MIN_CORRELATION``, settled where
+    ambiguous by :func:`_settled_by_stroke`), and the ring's two halves found agreeing at that turned pose, each to
+    ``TURNED_STROKE_CORRELATION``; (None, ()) unless both."""
+    roll = measure_ring_roll(image, view, carm_from_marker, design, min_correlation=TURNED_MIN_CORRELATION)
+    if roll is None:
+        return None, ()
+    roll = _settled_by_stroke(image, view, carm_from_marker, design, roll)
+    if roll.runner_up >= ROLL_AMBIGUOUS_RATIO * roll.correlation:
+        return None, ()
+    halves, score = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
+    return (roll, halves) if score >= TURNED_STROKE_CORRELATION else (None, ())
 
 
 def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool | None]) -> dict[int, list]:
