@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import flat_marker_scene, strokes_as_agreeing_pairs_only, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
+from twin_images import flat_marker_scene, edge_on_rows_as_first_taken, study_shot  # noqa: E402  (tests/: the twin's scenes, marker poses and shot)
 
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
 from drillnav.registration import video_fluoro
@@ -68,7 +68,7 @@ def test_two_flat_markers_along_the_lateral_line_are_no_longer_free_to_turn_abou
     without the rolls too, so the scene would no longer show what the rolls do."""
     import accuracy
 
-    strokes_as_agreeing_pairs_only(monkeypatch)
+    edge_on_rows_as_first_taken(monkeypatch)
 
     scene, poses, pose, video, image = study_shot(SEED, "ap+lateral", POSE, marker_tilt_deg=(0.0, 10.0))
     entry = scene.corridor_entry_carm_mm

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import strokes_as_agreeing_pairs_only, study_shot  # noqa: E402  (tests/: the study's scene of a seed and pair)
+from twin_images import edge_on_rows_as_first_taken, study_shot  # noqa: E402  (tests/: the study's scene of a seed and pair)
 
 from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
 from drillnav.registration.pipeline import register_with_recovery
@@ -29,7 +29,7 @@ SEED, POSE, FLAT = 12101, 0, (0.0, 10.0)
 def test_the_tags_still_missing_are_looked_for_where_a_registration_on_named_tags_puts_them(monkeypatch):
     import accuracy
 
-    strokes_as_agreeing_pairs_only(monkeypatch)
+    edge_on_rows_as_first_taken(monkeypatch)
 
     scene, poses, pose, video, image = study_shot(SEED, "ap+lateral", POSE, marker_tilt_deg=FLAT)
     # The case: the detector reads 1's tag alone, and 6 and 45 are posed in fluoroscopy.
