@@ -15,6 +15,7 @@ positioner angles; a calibrated 3x4 matrix per image overrides them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -117,7 +118,9 @@ class CArmView:
     distortion_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
-        p = np.asarray(self.projection_matrix, dtype=np.float64)
+        # A copy no caller holds, read-only: the view's decomposition is computed once and kept.
+        p = np.array(self.projection_matrix, dtype=np.float64)
+        p.setflags(write=False)
         if p.shape != (3, 4) or not np.all(np.isfinite(p)):
             raise ValueError(f"projection_matrix must be a finite 3x4 matrix, got shape {p.shape}")
         if abs(np.linalg.det(p[:, :3])) < 1e-12:
@@ -188,7 +191,15 @@ class CArmView:
 
     # -- decomposition -----------------------------------------------------------------
     def decompose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Split into (K (3, 3) with K[2, 2] = 1 and positive diagonal, source_from_carm (4, 4))."""
+        """Split into (K (3, 3) with K[2, 2] = 1 and positive diagonal, source_from_carm (4, 4)): copies the caller
+        may change."""
+        k, source_from_carm = self._decomposition
+        return k.copy(), source_from_carm.copy()
+
+    @cached_property
+    def _decomposition(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`decompose`'s (K, source_from_carm), computed once (read-only): a view's magnification and depths
+        are asked for at every rendered pose of a marker's shadow."""
         p = self.projection_matrix
         m = p[:, :3]
         # RQ decomposition via QR of the flipped transpose.
@@ -206,7 +217,10 @@ class CArmView:
             # flip into K's first column, as K F F R = K R. The depth row is untouched, so depths stay positive.
             flip = np.diag([-1.0, 1.0, 1.0])
             rot, t, k = flip @ rot, flip @ t, k @ flip
-        return k, make_transform(rot, t)
+        source_from_carm = make_transform(rot, t)
+        k.setflags(write=False)
+        source_from_carm.setflags(write=False)
+        return k, source_from_carm
 
     @property
     def source_position_mm(self) -> NDArray[np.float64]:
@@ -220,7 +234,7 @@ class CArmView:
 
     @property
     def source_to_detector_mm(self) -> float:
-        k, _ = self.decompose()
+        k, _ = self._decomposition
         return float(k[0, 0] * self.pixel_spacing_mm[1])
 
     # -- projection ----------------------------------------------------------------------
@@ -250,7 +264,7 @@ class CArmView:
 
     def depth_mm(self, points_carm_mm: ArrayLike) -> NDArray[np.float64]:
         """Distance (N,) of points from the source along the central ray, mm."""
-        _, source_from_carm = self.decompose()
+        _, source_from_carm = self._decomposition
         p = check_points(points_carm_mm)
         return p @ source_from_carm[2, :3] + source_from_carm[2, 3]
 
@@ -265,7 +279,7 @@ class CArmView:
         h = np.concatenate([px, np.ones((px.shape[0], 1))], axis=1)
         d = np.linalg.solve(m, h.T).T
         # Orient towards the detector: positive depth.
-        _, source_from_carm = self.decompose()
+        _, source_from_carm = self._decomposition
         sign = np.sign(d @ source_from_carm[2, :3])
         d = d * sign[:, None]
         return self.source_position_mm, d / np.linalg.norm(d, axis=1, keepdims=True)
