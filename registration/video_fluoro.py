@@ -353,6 +353,11 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
     return sol
 
 
+def _ambiguous(roll: RingRoll) -> bool:
+    """Whether ``roll``'s runner-up turn matched the image within ``ROLL_AMBIGUOUS_RATIO`` of its best."""
+    return bool(np.isfinite(roll.runner_up_deg) and roll.runner_up >= ROLL_AMBIGUOUS_RATIO * roll.correlation)
+
+
 def _halves_at(image: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign,
                roll: RingRoll, deg: float) -> tuple[tuple[RingStroke, ...], float]:
     """The two halves of ``design``'s stroke found agreeing at ``carm_from_marker`` (4, 4) turned ``deg`` about
@@ -368,7 +373,7 @@ def _settled_by_stroke(image: NDArray[np.floating], view: CArmView, carm_from_ma
     (``ROLL_AMBIGUOUS_RATIO``) and the ring's stroke tells them apart: the two turns open the ring differently, and the
     stroke's profile at the best turn matches (both halves, to ``TURNED_STROKE_CORRELATION``) better by
     ``TURNED_STROKE_MARGIN`` than at the runner-up's; then it has no runner-up. ``roll`` as it is otherwise."""
-    if not (np.isfinite(roll.runner_up_deg) and roll.runner_up >= ROLL_AMBIGUOUS_RATIO * roll.correlation):
+    if not _ambiguous(roll):
         return roll
     _, best = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
     _, other = _halves_at(image, view, carm_from_marker, design, roll, roll.runner_up_deg)
@@ -387,7 +392,7 @@ def _turned_stroke(image: NDArray[np.floating], view: CArmView, carm_from_marker
     if roll is None:
         return None, ()
     roll = _settled_by_stroke(image, view, carm_from_marker, design, roll)
-    if roll.runner_up >= ROLL_AMBIGUOUS_RATIO * roll.correlation:
+    if _ambiguous(roll):
         return None, ()
     halves, score = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
     return (roll, halves) if score >= TURNED_STROKE_CORRELATION else (None, ())
@@ -413,8 +418,7 @@ def _settle_rolls(measured: dict[int, list], solve: dict) -> dict[int, list]:
     whose fit is better by ``ROLL_DELTA_CHI2`` (the camera's constellation and the other markers' rolls tell), else
     left out."""
     choice: dict[tuple[int, int], bool | None] = {}
-    ambiguous = [(i, k) for i, per in measured.items() for k, (_, r) in enumerate(per)
-                 if r.runner_up >= ROLL_AMBIGUOUS_RATIO * r.correlation and np.isfinite(r.runner_up_apart_px)]
+    ambiguous = [(i, k) for i, per in measured.items() for k, (_, r) in enumerate(per) if _ambiguous(r)]
     if not ambiguous:
         return _roll_rows(measured, choice)
     base = joint_solve(**{**solve, "rolls": _roll_rows(measured, choice)})
