@@ -368,14 +368,16 @@ def _halves_at(image: NDArray[np.floating], view: CArmView, carm_from_marker: ND
 
 
 def _settled_by_stroke(image: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign,
-                       roll: RingRoll) -> RingRoll:
+                       roll: RingRoll, *, best: float | None = None) -> RingRoll:
     """``roll`` measured at ``carm_from_marker`` (4, 4), settled where its runner-up turn matched about as well
     (``ROLL_AMBIGUOUS_RATIO``) and the ring's stroke tells them apart: the two turns open the ring differently, and the
     stroke's profile at the best turn matches (both halves, to ``TURNED_STROKE_CORRELATION``) better by
-    ``TURNED_STROKE_MARGIN`` than at the runner-up's; then it has no runner-up. ``roll`` as it is otherwise."""
+    ``TURNED_STROKE_MARGIN`` than at the runner-up's; then it has no runner-up. ``roll`` as it is otherwise.
+    ``best``: the weaker half's correlation at the best turn where the caller has it (:func:`_halves_at`)."""
     if not _ambiguous(roll):
         return roll
-    _, best = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
+    if best is None:
+        _, best = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
     _, other = _halves_at(image, view, carm_from_marker, design, roll, roll.runner_up_deg)
     if best >= TURNED_STROKE_CORRELATION and best > other + TURNED_STROKE_MARGIN:
         return replace(roll, runner_up=0.0, runner_up_apart_px=float("nan"), runner_up_deg=float("nan"))
@@ -391,11 +393,11 @@ def _turned_stroke(image: NDArray[np.floating], view: CArmView, carm_from_marker
     roll = measure_ring_roll(image, view, carm_from_marker, design, min_correlation=TURNED_MIN_CORRELATION)
     if roll is None:
         return None, ()
-    roll = _settled_by_stroke(image, view, carm_from_marker, design, roll)
-    if _ambiguous(roll):
-        return None, ()
     halves, score = _halves_at(image, view, carm_from_marker, design, roll, roll.roll_deg)
-    return (roll, halves) if score >= TURNED_STROKE_CORRELATION else (None, ())
+    if score < TURNED_STROKE_CORRELATION:
+        return None, ()
+    roll = _settled_by_stroke(image, view, carm_from_marker, design, roll, best=score)
+    return (None, ()) if _ambiguous(roll) else (roll, halves)
 
 
 def _roll_rows(measured: dict[int, list], choice: dict[tuple[int, int], bool | None]) -> dict[int, list]:
