@@ -5,15 +5,23 @@ clamp's jaw or a K-wire crossing a ring cuts its wire into arcs; each arc was fi
 own, from the same BBs, and the detector then dropped the marker as "found twice" (seed 3000's AP view of
 the accuracy study, benchmarks/accuracy.py, pair ap+lateral: marker 12). A blob smaller than any BB inside a
 ring (metal's end or corner) made every BB look large, so no central BB was found (seed 3001's AP view:
-marker 39). Both are identified now, and every identity stays at its true place.
+marker 39). Both are identified now, and every identity stays at its true place. A ring partly hidden can match
+another marker's design, which a ring in plain view shows too; the one that fits the design clearly better keeps it
+(seeds 10400 and 10900, markers flat, outlet views).
 """
+
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from twin_images import operating_room_scene  # noqa: E402  (tests/: the accuracy study's scenes)
+
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import make_scene, render_fluoro
-from drillnav.registration.fluoro_markers import DetectedBB, DetectedMarker, _merge_split_rings, detect_markers
+from drillnav.registration.fluoro_markers import DUPLICATE_MARGIN_MM, DetectedBB, DetectedMarker, _merge_split_rings, detect_in_view, detect_markers
 from drillnav.registration.markers import default_marker_set
 from drillnav.registration.transforms import apply
 
@@ -71,6 +79,36 @@ def test_pieces_sharing_bbs_are_kept_once_and_disjoint_rings_refused():
     assert kept == [] and len(rejected) == 2 and all("found twice" in r.reason for r in rejected)
 
 
+def test_of_two_rings_claiming_one_id_the_one_fitting_it_clearly_better_is_kept():
+    shared = [(10, 10), (20, 10), (30, 15), (12, 40)]
+    far = [(500 + x, 500 + y) for x, y in shared]
+    kept, rejected = _merge_split_rings([_marker(7, far, 0.8), _marker(7, shared, 0.2)])
+    assert [m.identification_cost_mm for m in kept] == [0.2]
+    assert len(rejected) == 1 and "fits it better (0.20 against 0.80 mm)" in rejected[0].reason
+    just = 0.2 + DUPLICATE_MARGIN_MM - 0.01
+    kept, rejected = _merge_split_rings([_marker(7, far, just), _marker(7, shared, 0.2)])
+    assert kept == [] and len(rejected) == 2
+
+
+@pytest.mark.parametrize("seed, true_id, other_id", [(10400, 6, 22), (10900, 6, 42)])
+def test_a_ring_misread_as_a_marker_another_ring_shows_leaves_the_true_one(seed, true_id, other_id):
+    """The accuracy study's outlet view with the markers flat on the skin (``--marker-tilt 0,10``): marker
+    ``other_id``'s ring, partly hidden, matches marker ``true_id``'s design at 0.81-0.86 mm, and the true ring of
+    ``true_id`` matches it at 0.05-0.23 mm. Both were rejected as one id found twice; the true one is kept now, at its
+    true place, and the other named as beaten."""
+    scene, k = operating_room_scene(seed, "inlet+outlet", marker_tilt_deg=(0.0, 10.0))
+    rng = np.random.default_rng([seed, k, 1])
+    images = {n: render_fluoro(scene, n, rng) for n in scene.views}  # in the study's order: the rng is shared
+    view = scene.views["outlet"]
+    det = detect_in_view(images["outlet"], view, scene.marker_set)
+    assert true_id in det.by_id(), [r.reason for r in det.rejected]
+    _assert_at_its_true_place(scene, view, det.by_id()[true_id], ring_px=20.0, bb_px=10.0)
+    beaten = [r for r in det.rejected if r.reason.startswith(f"marker id {true_id} found twice; the ring at")]
+    assert len(beaten) == 1
+    other = view.project(apply(scene.carm_from_marker[other_id], np.zeros((1, 3))))[0]
+    assert np.hypot(*(beaten[0].center_px - other)) < 30.0
+
+
 @pytest.mark.parametrize("seed", [3000, 3001])
 def test_a_marker_whose_central_bb_is_hidden_is_identified_from_its_ring_centre(seed):
     """Dense bone, a K-wire or the dose can hide a marker's central BB (with the real CT as the patient, the
@@ -94,3 +132,4 @@ def test_a_marker_whose_central_bb_is_hidden_is_identified_from_its_ring_centre(
     for m in after.markers:
         assert 0 not in m.bb_index.tolist(), m.marker_id  # no blob taken for the hidden central BB
         _assert_at_its_true_place(scene, view, m, ring_px=5.0, bb_px=3.0)
+
