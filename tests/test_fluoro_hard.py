@@ -132,4 +132,3 @@ def test_a_marker_whose_central_bb_is_hidden_is_identified_from_its_ring_centre(
     for m in after.markers:
         assert 0 not in m.bb_index.tolist(), m.marker_id  # no blob taken for the hidden central BB
         _assert_at_its_true_place(scene, view, m, ring_px=5.0, bb_px=3.0)
-
