@@ -22,7 +22,7 @@ import pickle
 import sys
 import time
 from collections import Counter
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,11 +49,25 @@ REFERENCE = {(2, 5): (0.9, 2.0), (1, 5): (3.4, 2.7)}
 METHODS = ("joint", "former")
 
 
-def _pairs(rng: np.random.Generator) -> dict[str, str]:
-    a = rng.uniform(-60, 60)
-    b = a + rng.choice([-1, 1]) * rng.uniform(40, 90)
+@dataclass(frozen=True, kw_only=True)
+class RandomPairs:
+    """How the study draws its random view pair: the first view's primary angle within +-``primary_max_deg``, the
+    second's ``separation_deg`` (low, high) away from it either way (clipped to +-120 deg), each view's secondary angle
+    within +-``secondary_max_deg``. The defaults are the study's own; others (``--random-pairs``) try view pairs the
+    study's seeds never draw, with the same random numbers, so every other pair's scene stays as it was."""
+
+    primary_max_deg: float = 60.0
+    separation_deg: tuple[float, float] = (40.0, 90.0)
+    secondary_max_deg: float = 25.0
+
+
+def _pairs(rng: np.random.Generator, random_pairs: RandomPairs = RandomPairs()) -> dict[str, str]:
+    r = random_pairs
+    a = rng.uniform(-r.primary_max_deg, r.primary_max_deg)
+    b = a + rng.choice([-1, 1]) * rng.uniform(*r.separation_deg)
     return {"inlet+outlet": "inlet,outlet", "ap+lateral": "ap,lateral",
-            "random": f"{a:.0f}:{rng.uniform(-25, 25):.0f},{np.clip(b, -120, 120):.0f}:{rng.uniform(-25, 25):.0f}"}
+            "random": f"{a:.0f}:{rng.uniform(-r.secondary_max_deg, r.secondary_max_deg):.0f},{np.clip(b, -120, 120):.0f}:"
+                      f"{rng.uniform(-r.secondary_max_deg, r.secondary_max_deg):.0f}"}
 
 
 def camera_shots(scene, *, seed: int, k: int, poses: int) -> list:
@@ -129,7 +143,8 @@ class _Shots:
 def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degradations = Degradations(), patient: VoxelAnatomy | None = None,
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
         diagnose: list | None = None, recover: bool = True, measured_markers: bool = False, exact_calibration: bool = False,
-        camera_size: tuple[int, int] = (1280, 720), carm: dict | None = None) -> dict:
+        camera_size: tuple[int, int] = (1280, 720), carm: dict | None = None, random_pairs: RandomPairs = RandomPairs(),
+        pairs: tuple[str, ...] | None = None) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
     ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
@@ -143,6 +158,8 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     to the error, for comparison; the predicted error still assumes the stated uncertainty).
     ``camera_size``: the drill camera's frame (width, height) px, its horizontal field of view as the twin's (76 deg).
     ``carm``: the C-arm's geometry and detector (``PAPER_CARM``'s keys; None: ``PAPER_CARM``).
+    ``random_pairs``: how the random pair is drawn (:class:`RandomPairs`). ``pairs``: the pairs studied (None: every one);
+    each keeps its seeds' scene and images.
     """
     rows: dict[tuple, list] = {}
     refusals: dict[tuple, Counter] = {}
@@ -153,7 +170,9 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     video_key = tuple(n for n in deg.enabled if n in CAMERA or n in ("surgeon_markers", "ct_anatomy"))
     for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(seed)
-        for k, (pair, views) in enumerate(_pairs(rng).items()):
+        for k, (pair, views) in enumerate(_pairs(rng, random_pairs).items()):
+            if pairs is not None and pair not in pairs:
+                continue
             scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None,
                                image_size=camera_size, carm=carm)
             if measured_markers:
@@ -610,6 +629,9 @@ def main() -> None:
                     "horizontal field of view stays 76 deg): the product at a resolution its twin does not default to")
     ap.add_argument("--detector", default=None, help="the C-arm's detector, ROWSxCOLUMNS@PIXEL_MM (default the reference's "
                     "976x976@0.304; e.g. 488x488@0.608 for 2x2 binning), its source distances unchanged")
+    ap.add_argument("--random-pairs", default=None, help="draw the random view pair with its views SEP_LOW-SEP_HIGH deg apart and secondary "
+                    "angles within +-SECONDARY deg, as SEP_LOW,SEP_HIGH[,SECONDARY] (default 40,90,25: the study's own)")
+    ap.add_argument("--pairs", default=None, help="study only these view pairs, comma-separated (inlet+outlet, ap+lateral, random; default every one)")
     ap.add_argument("--marker-tilt", default=None, help="with surgeon_markers, the markers' tilt from the AP beam, LOW,HIGH deg (default "
                     "the twin's 10,40; e.g. 0,10 for markers stuck flat on the skin, edge-on in a lateral view)")
     args = ap.parse_args()
@@ -630,6 +652,19 @@ def main() -> None:
             raise ValueError
     except ValueError:
         ap.error(f"--camera-size must be WIDTHxHEIGHT px, each at least 160, got {args.camera_size!r}")
+    random_pairs = RandomPairs()
+    if args.random_pairs is not None:
+        try:
+            values = [float(v) for v in args.random_pairs.split(",")]
+            if len(values) not in (2, 3) or not 0.0 <= values[0] <= values[1] <= 180.0 or (len(values) == 3 and not 0.0 <= values[2] <= 60.0):
+                raise ValueError
+        except ValueError:
+            ap.error(f"--random-pairs must be SEP_LOW,SEP_HIGH[,SECONDARY] deg (0 <= low <= high <= 180, secondary 0-60), got {args.random_pairs!r}")
+        random_pairs = RandomPairs(separation_deg=(values[0], values[1]), **({"secondary_max_deg": values[2]} if len(values) == 3 else {}))
+    known = tuple(_pairs(np.random.default_rng(0)))
+    pairs = None if args.pairs is None else tuple(p.strip() for p in args.pairs.split(","))
+    if pairs is not None and (not pairs or any(p not in known for p in pairs)):
+        ap.error(f"--pairs takes {', '.join(known)}, comma-separated; got {args.pairs!r}")
     seeds, poses = (2, 1) if args.quick else (args.seeds, args.poses)
     if args.degradations is None:
         degradations = Degradations.parse("all")
@@ -648,7 +683,8 @@ def main() -> None:
     shots = _Shots()
     cases: list | None = [] if args.diagnose else None
     result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
-                 recover=not args.no_recover, measured_markers=args.measured_markers, exact_calibration=args.exact_calibration, camera_size=camera_size, carm=carm)
+                 recover=not args.no_recover, measured_markers=args.measured_markers, exact_calibration=args.exact_calibration, camera_size=camera_size, carm=carm,
+                 random_pairs=random_pairs, pairs=pairs)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)
@@ -659,7 +695,8 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None and not args.exact_calibration:  # the docs table is the twin's own devices
+    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None and not args.exact_calibration \
+            and random_pairs == RandomPairs() and pairs is None:  # the docs table is the twin's own devices and view pairs
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
@@ -680,7 +717,8 @@ def main() -> None:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
            exact_calibration=args.exact_calibration,
-           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", marker_tilt_deg=list(degradations.marker_tilt_deg), summary=summary,
+           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", marker_tilt_deg=list(degradations.marker_tilt_deg),
+           random_pairs=dataclasses.asdict(random_pairs), pairs=list(pairs or known), summary=summary,
            per_degradation=per_deg)
 
 

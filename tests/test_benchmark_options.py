@@ -6,9 +6,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import accuracy  # noqa: E402
 
 
 @pytest.mark.parametrize("tilt, why", [("50,10", "marker_tilt_deg must be 0 <= low <= high < 80"), ("5,x", "could not convert")])
@@ -25,3 +29,37 @@ def test_edge_on_rows_refuses_settings_it_cannot_use(args, why):
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "edge_on_rows.py"), *args], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 2
     assert why in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("args, why", [(["--random-pairs", "40,15"], "--random-pairs must be SEP_LOW,SEP_HIGH[,SECONDARY] deg"),
+                                       (["--random-pairs", "15,40,90"], "got '15,40,90'"),
+                                       (["--pairs", "random,oblique"], "--pairs takes inlet+outlet, ap+lateral, random, comma-separated; got 'random,oblique'")])
+def test_accuracy_refuses_view_pairs_it_cannot_draw(args, why):
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "accuracy.py"), "--quick", "--no-docs", *args],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 2
+    assert why in proc.stderr, proc.stderr
+
+
+def _random_angles(views: str) -> list[tuple[float, float]]:
+    return [tuple(float(v) for v in view.split(":")) for view in views.split(",")]
+
+
+def test_close_random_pairs_keep_every_other_pair_and_the_seeds_later_draws():
+    """Another random pair's ranges draw as many numbers as the study's own: the other pairs are the same, and so is
+    everything the seed's generator draws after them; the pair itself lies within the ranges asked for."""
+    close = accuracy.RandomPairs(separation_deg=(15.0, 40.0), secondary_max_deg=40.0)
+    seps, secondaries = [], []
+    for seed in range(3000, 3040):
+        own_rng, close_rng = np.random.default_rng(seed), np.random.default_rng(seed)
+        own, other = accuracy._pairs(own_rng), accuracy._pairs(close_rng, close)
+        assert {k: v for k, v in own.items() if k != "random"} == {k: v for k, v in other.items() if k != "random"}
+        assert own_rng.random() == close_rng.random()
+        (a, sa), (b, sb) = _random_angles(other["random"])
+        if abs(b) < 120:  # not clipped
+            seps.append(abs(b - a))
+        secondaries += [abs(sa), abs(sb)]
+    # Rounded to whole degrees as the views are named.
+    assert 14.5 <= min(seps) and max(seps) <= 40.5 and max(seps) > 30.0
+    assert max(secondaries) <= 40.5 and max(secondaries) > 30.0
+    assert accuracy._pairs(np.random.default_rng(3000)) == accuracy._pairs(np.random.default_rng(3000), accuracy.RandomPairs())
