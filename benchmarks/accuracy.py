@@ -629,6 +629,8 @@ def main() -> None:
                     "horizontal field of view stays 76 deg): the product at a resolution its twin does not default to")
     ap.add_argument("--detector", default=None, help="the C-arm's detector, ROWSxCOLUMNS@PIXEL_MM (default the reference's "
                     "976x976@0.304; e.g. 488x488@0.608 for 2x2 binning), its source distances unchanged")
+    ap.add_argument("--source-distances", default=None, help="the C-arm's source-to-detector and source-to-isocentre distances, SID,SOD mm "
+                    "(default the reference's 1164,624; the detector as --detector gives it)")
     ap.add_argument("--random-pairs", default=None, help="draw the random view pair with its views SEP_LOW-SEP_HIGH deg apart and secondary "
                     "angles within +-SECONDARY deg, as SEP_LOW,SEP_HIGH[,SECONDARY] (default 40,90,25: the study's own)")
     ap.add_argument("--pairs", default=None, help="study only these view pairs, comma-separated (inlet+outlet, ap+lateral, random; default every one)")
@@ -646,6 +648,14 @@ def main() -> None:
         except ValueError:
             ap.error(f"--detector must be ROWSxCOLUMNS@PIXEL_MM (at least 64 px, 0.01-5 mm), got {args.detector!r}")
         carm = dict(PAPER_CARM, rows=rows, columns=columns, pixel_spacing_mm=(pixel_mm, pixel_mm))
+    if args.source_distances is not None:
+        try:
+            sid, sod = (float(v) for v in args.source_distances.split(","))
+            if not 300.0 <= sod < sid <= 2000.0:
+                raise ValueError
+        except ValueError:
+            ap.error(f"--source-distances must be SID,SOD mm with 300 <= SOD < SID <= 2000, got {args.source_distances!r}")
+        carm = dict(carm or PAPER_CARM, source_to_detector_mm=sid, source_to_isocenter_mm=sod)
     try:
         camera_size = tuple(int(v) for v in args.camera_size.lower().split("x"))
         if len(camera_size) != 2 or min(camera_size) < 160:
@@ -717,7 +727,8 @@ def main() -> None:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
            exact_calibration=args.exact_calibration,
-           camera_size=list(camera_size), detector=args.detector or "976x976@0.304", marker_tilt_deg=list(degradations.marker_tilt_deg),
+           camera_size=list(camera_size), detector=args.detector or "976x976@0.304",
+           source_distances_mm=[float((carm or PAPER_CARM)["source_to_detector_mm"]), float((carm or PAPER_CARM)["source_to_isocenter_mm"])], marker_tilt_deg=list(degradations.marker_tilt_deg),
            random_pairs=dataclasses.asdict(random_pairs), pairs=list(pairs or known), summary=summary,
            per_degradation=per_deg)
 
