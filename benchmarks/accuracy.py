@@ -34,7 +34,7 @@ from tag_detection import _true_corners  # noqa: E402
 from drillnav.drivers.sim.anatomy import Corridor
 from drillnav.drivers.sim.ct_anatomy import VoxelAnatomy
 from drillnav.drivers.sim.degradations import CAMERA, Degradations
-from drillnav.drivers.sim.scene import PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
+from drillnav.drivers.sim.scene import CAMERA_FOV_DEG, PAPER_CARM, TRUE_DRILL_AXIS_CAMERA, make_scene, render_fluoro
 from drillnav.registration.errors import DrillnavError
 from drillnav.registration.fluoro_markers import detect_in_view
 from drillnav.registration.marker_pose import register_markers
@@ -144,7 +144,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
         ms: tuple[int, ...] = (3, 4, 5), methods: tuple[str, ...] = METHODS, shots: _Shots | None = None,
         diagnose: list | None = None, recover: bool = True, measured_markers: bool = False, exact_calibration: bool = False,
         camera_size: tuple[int, int] = (1280, 720), carm: dict | None = None, random_pairs: RandomPairs = RandomPairs(),
-        pairs: tuple[str, ...] | None = None) -> dict:
+        pairs: tuple[str, ...] | None = None, camera_fov_deg: float = CAMERA_FOV_DEG) -> dict:
     """rows[(pair, n_views, M, method)] = list of (pos_mm, ang_deg, bound90_pos_mm, bound90_ang_deg, reliable).
 
     ``diagnose``: a list that gets one dict per joint registration: refused (see :func:`_case`) or registered
@@ -156,7 +156,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
     ``exact_calibration``: the product is handed the drill camera's true intrinsics and the drill axis's true line
     instead of the calibration the twin draws at the uncertainty camera.json and drill.json state (what that draw adds
     to the error, for comparison; the predicted error still assumes the stated uncertainty).
-    ``camera_size``: the drill camera's frame (width, height) px, its horizontal field of view as the twin's (76 deg).
+    ``camera_size``: the drill camera's frame (width, height) px; ``camera_fov_deg`` its horizontal field of view.
     ``carm``: the C-arm's geometry and detector (``PAPER_CARM``'s keys; None: ``PAPER_CARM``).
     ``random_pairs``: how the random pair is drawn (:class:`RandomPairs`). ``pairs``: the pairs studied (None: every one);
     each keeps its seeds' scene and images.
@@ -174,7 +174,7 @@ def run(seeds: int, poses: int, first_seed: int = 3000, *, degradations: Degrada
             if pairs is not None and pair not in pairs:
                 continue
             scene = make_scene(seed=seed, views=views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None,
-                               image_size=camera_size, carm=carm)
+                               image_size=camera_size, camera_fov_deg=camera_fov_deg, carm=carm)
             if measured_markers:
                 scene = replace(scene, marker_set=scene.measured_marker_set())
             if exact_calibration:
@@ -626,9 +626,10 @@ def main() -> None:
     ap.add_argument("--no-recover", action="store_true", help="register from the detector's tags alone: no tag recovered from the "
                     "registration's prediction (the product before it; for comparison)")
     ap.add_argument("--camera-size", default="1280x720", help="the drill camera's frame, WIDTHxHEIGHT px (default %(default)s; the "
-                    "horizontal field of view stays 76 deg): the product at a resolution its twin does not default to")
+                    "horizontal field of view as --camera-fov gives it): the product at a resolution its twin does not default to")
     ap.add_argument("--detector", default=None, help="the C-arm's detector, ROWSxCOLUMNS@PIXEL_MM (default the reference's "
                     "976x976@0.304; e.g. 488x488@0.608 for 2x2 binning), its source distances unchanged")
+    ap.add_argument("--camera-fov", type=float, default=CAMERA_FOV_DEG, help="the drill camera's horizontal field of view, deg (default %(default)s)")
     ap.add_argument("--source-distances", default=None, help="the C-arm's source-to-detector and source-to-isocentre distances, SID,SOD mm "
                     "(default the reference's 1164,624; the detector as --detector gives it)")
     ap.add_argument("--random-pairs", default=None, help="draw the random view pair with its views SEP_LOW-SEP_HIGH deg apart and secondary "
@@ -662,6 +663,8 @@ def main() -> None:
             raise ValueError
     except ValueError:
         ap.error(f"--camera-size must be WIDTHxHEIGHT px, each at least 160, got {args.camera_size!r}")
+    if not 20.0 <= args.camera_fov <= 150.0:
+        ap.error(f"--camera-fov must be 20-150 deg, got {args.camera_fov}")
     random_pairs = RandomPairs()
     if args.random_pairs is not None:
         try:
@@ -694,7 +697,7 @@ def main() -> None:
     cases: list | None = [] if args.diagnose else None
     result = run(seeds, poses, args.first_seed, degradations=degradations, patient=patient, shots=shots, diagnose=cases, ms=tuple(args.ms),
                  recover=not args.no_recover, measured_markers=args.measured_markers, exact_calibration=args.exact_calibration, camera_size=camera_size, carm=carm,
-                 random_pairs=random_pairs, pairs=pairs)
+                 random_pairs=random_pairs, pairs=pairs, camera_fov_deg=args.camera_fov)
     if cases is not None:
         print_cases(cases)
     summary = summarise(result)
@@ -705,7 +708,7 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick and camera_size == (1280, 720) and carm is None and args.marker_tilt is None and not args.exact_calibration \
+    if not args.no_docs and not args.quick and camera_size == (1280, 720) and args.camera_fov == CAMERA_FOV_DEG and carm is None and args.marker_tilt is None and not args.exact_calibration \
             and random_pairs == RandomPairs() and pairs is None:  # the docs table is the twin's own devices and view pairs
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
@@ -727,7 +730,7 @@ def main() -> None:
             figs.append(figure(f"{s['degradation']} {s['views']}v M=5 joint pos median", s["pos_q"][1], "mm", REFERENCE[(s["views"], 5)][0]))
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
            exact_calibration=args.exact_calibration,
-           camera_size=list(camera_size), detector=args.detector or "976x976@0.304",
+           camera_size=list(camera_size), camera_fov_deg=args.camera_fov, detector=args.detector or "976x976@0.304",
            source_distances_mm=[float((carm or PAPER_CARM)["source_to_detector_mm"]), float((carm or PAPER_CARM)["source_to_isocenter_mm"])], marker_tilt_deg=list(degradations.marker_tilt_deg),
            random_pairs=dataclasses.asdict(random_pairs), pairs=list(pairs or known), summary=summary,
            per_degradation=per_deg)

@@ -34,6 +34,7 @@ def test_edge_on_rows_refuses_settings_it_cannot_use(args, why):
 @pytest.mark.parametrize("args, why", [(["--random-pairs", "40,15"], "--random-pairs must be SEP_LOW,SEP_HIGH[,SECONDARY] deg"),
                                        (["--random-pairs", "15,40,90"], "got '15,40,90'"),
                                        (["--pairs", "random,oblique"], "--pairs takes inlet+outlet, ap+lateral, random, comma-separated; got 'random,oblique'"),
+                                       (["--camera-fov", "10"], "--camera-fov must be 20-150 deg, got 10.0"),
                                        (["--source-distances", "600,700"], "--source-distances must be SID,SOD mm with 300 <= SOD < SID <= 2000, got '600,700'")])
 def test_accuracy_refuses_view_pairs_and_c_arms_it_cannot_draw(args, why):
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "accuracy.py"), "--quick", "--no-docs", *args],

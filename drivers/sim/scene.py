@@ -36,6 +36,8 @@ from .xray import MU_PER_MM, add_box, add_cylinder, add_ellipsoids, add_ring, ad
 
 __all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
 
+# The drill camera's horizontal field of view (deg): a small USB camera's wide lens.
+CAMERA_FOV_DEG = 76.0
 PAPER_CARM = dict(source_to_detector_mm=1164.0, source_to_isocenter_mm=624.0, pixel_spacing_mm=(0.304, 0.304), rows=976, columns=976)
 # Named positioner angles (primary LAO+, secondary CRA+). Inlet: beam tilted caudally; outlet: cranially.
 NAMED_VIEWS: dict[str, tuple[float, float]] = {
@@ -339,6 +341,7 @@ def make_scene(
     views: str | dict[str, tuple[float, float]] = "inlet,outlet",
     corridor: str = "AIIS-PSIS",
     image_size: tuple[int, int] = (1280, 720),
+    camera_fov_deg: float = CAMERA_FOV_DEG,
     render: bool = True,
     bb_manufacturing_sigma_mm: float = 0.05,
     kwire: bool = True,
@@ -348,7 +351,7 @@ def make_scene(
 ) -> Scene:
     """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only).
 
-    ``image_size``: the drill camera's frame (width, height) px. ``carm``: the C-arm's geometry and detector as
+    ``image_size``: the drill camera's frame (width, height) px, ``camera_fov_deg`` its horizontal field of view. ``carm``: the C-arm's geometry and detector as
     :data:`PAPER_CARM`'s keys (None: :data:`PAPER_CARM`, the reference's C-arm).
 
     ``voxel_anatomy``: a real CT as the patient, with its planned trajectory (``corridor`` is then unused).
@@ -391,7 +394,7 @@ def make_scene(
         poses = _place_markers(rng, marker_ids, carm_from_ct, target, degradations)
         table_y = TABLE_Y_MM
     manufactured = {m.marker_id: m.with_bb_errors(rng, bb_manufacturing_sigma_mm) for m in used.markers}
-    true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=76.0, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
+    true_camera = PinholeCamera.from_fov(width=image_size[0], height=image_size[1], horizontal_fov_deg=camera_fov_deg, distortion=[-0.12, 0.09, 0.0006, -0.0004, -0.02])
     carm_from_drill = _drill_pose(rng, target, carm_from_ct, offset_mm=3.0, tilt_deg=3.0, standoff_mm=290.0)
     # The twin's C-arm with ii_distortion is an image intensifier without a dewarp calibration: its views say so
     # (as its DICOM does, X-Ray Receptor Type), and the product estimates their distortion.
