@@ -576,7 +576,7 @@ def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict
     i = sol.used_ids[0]
     here = sol.carm_from_marker[i]
     give_up = sol.chi2 + MIRROR_GIVE_UP * MIRROR_DELTA_CHI2 * max(sol.reduced_chi2, 1.0)
-    best, other = sol, None
+    fits = [sol]
     for k, start in enumerate(pose.solutions):
         start = np.asarray(start)
         if Rotation.from_matrix(here[:3, :3].T @ start[:3, :3]).magnitude() < np.radians(2.0):
@@ -590,11 +590,16 @@ def _settle_lone_marker_mirror(sol: JointSolution, pose: MarkerPose, solve: dict
             continue
         if set(alt.used_ids) != {i}:
             continue
-        if alt.chi2 < best.chi2:
-            best, other = alt, best
-        elif other is None or alt.chi2 < other.chi2:
-            other = alt
-    return best, _left_open(best, other)
+        fits.append(alt)
+    # The other solution is the best of those that turn the drill otherwise: a start a few degrees from the joint
+    # solve's (its fluoroscopy pose, 3.4 deg away) may reach that same solution again, and must not hide the mirror.
+    # Twin seed 10901 (AP+lateral, second frame, a C-arm of 1000 / 600 mm source distances): marker 14 alone, posed in
+    # the AP view with two BBs claimed in the lateral one, reached a pose 19.6 deg off from one start (chi-square 37.6)
+    # and one 1.5 deg off from the other (38.8); the first start's copy stood in for the mirror, which was closed, and
+    # the axis lay 46 mm off under a 6.5 mm bound.
+    best = min(fits, key=lambda f: f.chi2)
+    distinct = [f for f in fits if not _same_drill(best, f)]
+    return best, _left_open(best, min(distinct, key=lambda f: f.chi2) if distinct else None)
 
 
 def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker_: NDArray[np.float64]) -> tuple[JointSolution, NDArray[np.float64] | None]:
