@@ -35,9 +35,10 @@ for there:
    expected id, and no other id of the dictionary agreeing with as many cells as the expected one, suffice. The
    place itself is the rest of the evidence: a black-bordered square whose four edges lie within ``tolerance_px``
    of where the registration predicts this marker's tag.
-   Identity by place (``placed_here``): when the prediction comes from a settled registration that places the
-   markers posed in fluoroscopy, and this marker is one of them, no marker that registration does not place can
-   lie where this one is; ``rivals`` are then the posed markers it places here too, and with none the cells read
+   Identity by place (``placed_here``): when the prediction comes from a registration that places the markers
+   posed in fluoroscopy (with its mirror open, under either solution), and this marker is one of them, no marker
+   that registration does not place can lie where this one is; ``rivals`` are then the posed markers it places
+   here too (under either solution), and with none the cells read
    need only agree (``min_agreement`` of them), however few a highlight leaves.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction

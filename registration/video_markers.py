@@ -483,7 +483,7 @@ class VideoMarkerLocator:
             fluoroscopy, seen or not (k = 0: nowhere it can be seen). A tag of the marker set is a rival of a
             missing one (its identity judged against it, :func:`.tag_recovery.recover_tag`'s ``rivals``) unless it
             is seen elsewhere in the frame or placed away from the missing tag (:func:`placed_elsewhere`).
-        ``by_place``: ``placed_px`` comes from a registration whose solution is settled (no mirror left open) and
+        ``by_place``: ``placed_px`` comes from a registration (with its mirror open, from both solutions, merged) and
             ``expected_corners_px`` from the same one: where a tag is found as predicted (or within ``reach_px`` of
             it), the marker posed in fluoroscopy there is where it is, so no marker the registration does not place
             can be there (markers are 40 mm across); only the posed markers it places here too (within the reach:
