@@ -708,8 +708,10 @@ def main() -> None:
         # two runs can be compared registration by registration.
         args.save.write_bytes(pickle.dumps({"result": result, "summary": summary, "per_deg": per_deg, "minutes": minutes, "seeds": seeds, "poses": poses,
                                             "cases": cases}))
-    if not args.no_docs and not args.quick and camera_size == (1280, 720) and args.camera_fov == CAMERA_FOV_DEG and carm is None and args.marker_tilt is None and not args.exact_calibration \
-            and random_pairs == RandomPairs() and pairs is None:  # the docs table is the twin's own devices and view pairs
+    # The docs table is the twin's own devices and view pairs.
+    own_twin = (camera_size == (1280, 720) and args.camera_fov == CAMERA_FOV_DEG and carm is None and args.marker_tilt is None
+                and not args.exact_calibration and random_pairs == RandomPairs() and pairs is None)
+    if not args.no_docs and not args.quick and own_twin:
         command = (f"benchmarks/accuracy.py --seeds {seeds} --poses {poses} --degradations {degradations.label()}" + (" --per-degradation" if args.per_degradation else "")
                    + (" --measured-markers" if args.measured_markers else ""))
         write_docs(summary, result, command, degradations, per_deg, minutes)
@@ -731,7 +733,8 @@ def main() -> None:
     report("accuracy", figs, seeds=seeds, poses_per_seed=poses, degradations=degradations.label(), measured_markers=args.measured_markers,
            exact_calibration=args.exact_calibration,
            camera_size=list(camera_size), camera_fov_deg=args.camera_fov, detector=args.detector or "976x976@0.304",
-           source_distances_mm=[float((carm or PAPER_CARM)["source_to_detector_mm"]), float((carm or PAPER_CARM)["source_to_isocenter_mm"])], marker_tilt_deg=list(degradations.marker_tilt_deg),
+           source_distances_mm=[float((carm or PAPER_CARM)[k]) for k in ("source_to_detector_mm", "source_to_isocenter_mm")],
+           marker_tilt_deg=list(degradations.marker_tilt_deg),
            random_pairs=dataclasses.asdict(random_pairs), pairs=list(pairs or known), summary=summary,
            per_degradation=per_deg)
 

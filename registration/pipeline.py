@@ -415,9 +415,9 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
         # A registration on one or two markers predicts the missing tags tens of pixels off (measured: 10-25 px on
         # the operating-room twin); a frame that may search (the joint solve's, whose checks name a misplaced corner)
         # also tries the prediction shifted.
-        # A tag found where predicted is named by its place too: the marker posed there. With the mirror open, where
-        # either solution puts a posed marker's tag (every solution fluoroscopy leaves it under the mirror): a marker that
-        # one of them places here is a rival. Twin seed 10901 (AP+lateral, second frame, a C-arm of 1000 / 600 mm source
+        # A tag found where predicted is named by its place too: the marker posed there. With the mirror open, the
+        # places are where either solution puts each posed marker's tag (under the mirror, every solution fluoroscopy
+        # left it), and a marker that one of them places here is a rival. Twin seed 10901 (AP+lateral, second frame, a C-arm of 1000 / 600 mm source
         # distances): on marker 14 alone, its mirror open, marker 3's glared tag lay within 1 px of where the mirror puts
         # it and was not named by its code (marker 16, posed, was a rival); named by its place, the axis 46 -> 0.7 mm off.
         more = locator.recover(image, video, expected, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=placed,

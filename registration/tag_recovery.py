@@ -38,8 +38,8 @@ for there:
    Identity by place (``placed_here``): when the prediction comes from a registration that places the markers
    posed in fluoroscopy (with its mirror open, under either solution), and this marker is one of them, no marker
    that registration does not place can lie where this one is; ``rivals`` are then the posed markers it places
-   here too (under either solution), and with none the cells read
-   need only agree (``min_agreement`` of them), however few a highlight leaves.
+   here too (under either solution), and with none the cells read need only agree (``min_agreement`` of them),
+   however few a highlight leaves.
 
 A foreign tag at the predicted place, a blank patch, and a tag farther than the tolerance from its prediction
 are refused, each with its reason.

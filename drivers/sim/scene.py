@@ -34,7 +34,7 @@ from .camera import render_markers
 from .degradations import LEAD_LINE_INTEGRAL, Box, Degradations, Hardware, collimator_mask, ii_distortion_maps, make_hardware
 from .xray import MU_PER_MM, add_box, add_cylinder, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
 
-__all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
+__all__ = ["Scene", "make_scene", "parse_views", "NAMED_VIEWS", "CAMERA_FOV_DEG", "PAPER_CARM", "TRUE_DRILL_AXIS_CAMERA"]
 
 # The drill camera's horizontal field of view (deg): a small USB camera's wide lens.
 CAMERA_FOV_DEG = 76.0
@@ -351,8 +351,9 @@ def make_scene(
 ) -> Scene:
     """A deterministic scene for ``seed``; ``render=False`` skips the images (geometry and truth only).
 
-    ``image_size``: the drill camera's frame (width, height) px, ``camera_fov_deg`` its horizontal field of view. ``carm``: the C-arm's geometry and detector as
-    :data:`PAPER_CARM`'s keys (None: :data:`PAPER_CARM`, the reference's C-arm).
+    ``image_size``: the drill camera's frame (width, height) px, ``camera_fov_deg`` its horizontal field of view.
+    ``carm``: the C-arm's geometry and detector as :data:`PAPER_CARM`'s keys (None: :data:`PAPER_CARM`, the
+    reference's C-arm).
 
     ``voxel_anatomy``: a real CT as the patient, with its planned trajectory (``corridor`` is then unused).
     ``degradations``: what an operating room adds (``drivers/sim/degradations.py``); None: none.
