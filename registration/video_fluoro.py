@@ -486,6 +486,10 @@ def _from_few_markers(ids, vids, every, marker_set: MarkerSet) -> NDArray[np.flo
 # rest: a lone marker observed in several views is solved on each view alone (:func:`_settle_lone_marker_views`); of
 # two markers, each is solved alone and the bound reaches both (:func:`_two_markers_alone`).
 LONE_MARKER_MISFIT_CHI = 4.0
+# Two markers fit together when one drill pose for both costs at most this much chi-square over their fits alone: the
+# 99.9th percentile of chi-square with 6 degrees of freedom (the shared pose's six constraints). On the twin, pairs
+# that fit together cost -12 to 7 (the stated noise is conservative), two that did not 62 and 948.
+TWO_MARKERS_DISAGREE_CHI2 = 22.46
 # A mirror solution whose chi-square exceeds the best by less than this (in units of the best fit's reduced
 # chi-square) is not ruled out by the data: about a 4-sigma difference in one direction.
 MIRROR_DELTA_CHI2 = 16.0
@@ -638,25 +642,33 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
 
 
 def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float64]]:
-    """Two markers left, one fitting far beyond its noise (over ``LONE_MARKER_MISFIT_CHI``): each marker solved alone
-    on its BBs and tag, their ``carm_from_drill`` (4, 4) each; [] otherwise, or for a marker that gives no solution.
+    """Two markers that do not fit together: each marker solved alone on its BBs, strokes and tag, their
+    ``carm_from_drill`` (4, 4) each; [] when they fit together, or for a marker that gives no solution.
 
     Two markers that each fit alone but not together stay in the joint solve (its vote cannot tell which is wrong), and
-    their fit's covariance, scaled by its reduced chi-square, need not reach either one's own solution. Twin seed 11901
-    (random pair, one view, first pose): marker 27, its tag at the frame's edge, posed on the two BBs its pairings agree
-    on, dragged marker 19 to 17.8 mm off; the axis lay 16.8 deg off under an 8.8 deg bound.
+    their fit's covariance, scaled by its reduced chi-square, need not reach either one's own solution. They do not fit
+    together when one is over ``LONE_MARKER_MISFIT_CHI`` in the joint solve, or when sharing one drill pose costs the
+    pair more chi-square than ``TWO_MARKERS_DISAGREE_CHI2`` over their two fits alone (the six constraints the shared
+    pose adds). Twin seed 11901 (random pair, one view, first pose): marker 27, its tag at the frame's edge, posed on the
+    two BBs its pairings agree on, dragged marker 19 to 17.8 mm off; the axis lay 16.8 deg off under an 8.8 deg bound.
+    Seed 15102 (AP+lateral, the lateral view alone, first pose): marker 41 posed on four BBs 76 mm off, both markers
+    under the misfit limit together (chi 1.8 and 4.0) but chi-square 953 against 1.6 + 3.7 alone; the axis lay 31.7 mm
+    off under a 7.8 mm bound.
     """
-    if len(sol.used_ids) != 2 or max(sol.marker_chi.values()) <= LONE_MARKER_MISFIT_CHI:
+    if len(sol.used_ids) != 2:
         return []
-    out = []
+    alone: dict[int, JointSolution] = {}
     for i in sol.used_ids:
+        own = {key: {i: solve[key][i]} if solve.get(key) and i in solve[key] else None for key in ("strokes", "rolls")}
         try:
-            alone = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={i: sol.carm_from_marker[i]},
-                                **{**solve, "observations": {i: solve["observations"][i]}, "min_markers": 1, "strokes": None})
+            alone[i] = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={i: sol.carm_from_marker[i]},
+                                   **{**solve, "observations": {i: solve["observations"][i]}, "min_markers": 1, **own})
         except DrillnavError:
             continue
-        out.append(alone.carm_from_drill)
-    return out
+    disagree = len(alone) == 2 and sol.chi2 - sum(a.chi2 for a in alone.values()) > TWO_MARKERS_DISAGREE_CHI2
+    if max(sol.marker_chi.values()) <= LONE_MARKER_MISFIT_CHI and not disagree:
+        return []
+    return [a.carm_from_drill for a in alone.values()]
 
 
 def _distinct_drill(best: JointSolution, other: JointSolution) -> NDArray[np.float64] | None:
