@@ -655,7 +655,8 @@ def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float
     under the misfit limit together (chi 1.8 and 4.0) but chi-square 953 against 1.6 + 3.7 alone; the axis lay 31.7 mm
     off under a 7.8 mm bound.
     """
-    if len(sol.used_ids) != 2:
+    # Alone each fits at a chi-square of 0 or more: a pair within the limit together is within it over them too.
+    if len(sol.used_ids) != 2 or (max(sol.marker_chi.values()) <= LONE_MARKER_MISFIT_CHI and sol.chi2 <= TWO_MARKERS_DISAGREE_CHI2):
         return []
     alone: dict[int, JointSolution] = {}
     for i in sol.used_ids:
