@@ -90,6 +90,11 @@ class DrillRegistration:
     # it fits within the margin): it widens the bound, but the tags the frame missed are looked for where the best
     # solution puts them alone, and named by their place as with no mirror (:func:`.pipeline.register_with_recovery`).
     mirror_unrefined: bool = False
+    # A lone marker whose unrefined mirror image fits about as well as the best is registered half-way to it
+    # (:func:`_half_way`): the best fit's ``carm_from_drill`` (4, 4) and {id: (4, 4)} marker poses, where the missing
+    # tags are looked for as before. None: the registration is the best fit itself.
+    fit_carm_from_drill: NDArray[np.float64] | None = None
+    fit_carm_from_marker: dict[int, NDArray[np.float64]] | None = None
     # The marker poses registered: those given, with the BBs claimed through the video's identities
     # (:mod:`.video_claims`) and the markers found that way; empty without the joint solve.
     marker_poses: tuple = ()
@@ -234,10 +239,12 @@ def register_video_to_fluoro(
         # An edge-on marker (a lateral view, markers on the anterior skin) shows few BBs or none, but its ring's stroke
         # across its line fixes its depth along the other views' beams: measured at the solve's poses, solved again.
         sol = _with_strokes(sol, every, solve, carm_from_marker, marker_set)
-        alternative, unrefined = None, False
+        alternative, unrefined, fit = None, False, None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
         if len(views) == 1:
             sol, alternative, unrefined = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
+            if unrefined and len(sol.used_ids) == 1:
+                fit, sol = sol, _half_way(sol, alternative, solve)
         elif len(sol.used_ids) == 1 and sol.marker_chi[sol.used_ids[0]] > LONE_MARKER_MISFIT_CHI:
             i = sol.used_ids[0]
             sol, alternative = _settle_lone_marker_views(sol, solve, drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm))
@@ -250,7 +257,8 @@ def register_video_to_fluoro(
         for alone in _two_markers_alone(sol, solve):
             covariance = _spanning(covariance, sol.carm_from_drill, alone, sol.pivot_carm_mm)
         extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
-                     mirror_carm_from_drill=alternative, mirror_unrefined=unrefined, detector_distortion_px=sol.detector_distortion_px)
+                     mirror_carm_from_drill=alternative, mirror_unrefined=unrefined, detector_distortion_px=sol.detector_distortion_px,
+                     fit_carm_from_drill=None if fit is None else fit.carm_from_drill, fit_carm_from_marker=None if fit is None else fit.carm_from_marker)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
     fre = {i: float(np.linalg.norm(apply(drill_from_carm, carm_from_marker[i][:3, 3]) - vids[i].position_camera_mm)) for i in common}
@@ -540,6 +548,36 @@ def _settle_constellation_mirror(sol: JointSolution, view, solve: dict) -> tuple
     if there.chi2 - here.chi2 < MIRROR_DELTA_CHI2 * max(here.reduced_chi2, 1.0):
         return best, mirror, True
     return best, None, False
+
+
+def _half_way(best: JointSolution, mirror: NDArray[np.float64], solve: dict) -> JointSolution:
+    """``best``, one marker's joint solution whose unrefined mirror image ``mirror`` (its ``carm_from_drill`` (4, 4)) fits
+    about as well, taken half-way along the turn to it: the solution there, unrefined; ``best`` where it cannot be had.
+
+    The mirror image of one marker is its own plane turned across the beam, face-on half-way. Nearly face-on, its tilt
+    shows only through its pattern's foreshortening (1 - cos), so the noise on that tilts the fit away from face-on,
+    and the data fit the whole turn about equally: half-way, the error is at most half the turn whichever end is true,
+    and the bound spans to the mirror image as before. Twin seed 13000 (flat markers, AP+lateral, first pose): marker
+    38 alone in the AP view, the axis 27.5 mm / 10.6 deg off at the best fit, 16.1 mm / 6.8 deg half-way (turn 11.1
+    deg); seed 11100 (the AP view alone, second pose) 30.3 -> 14.6 mm. With two markers or more the plane's tilt also
+    shows through their magnifications: taken half-way too, 16 such registrations moved on 66 seeds with the markers flat
+    and 69 with the surgeon's, 12 of them farther.
+    """
+    half = _turn_part(mirror @ invert(best.carm_from_drill), 0.5)
+    inputs = {**solve, "observations": {i: solve["observations"][i] for i in best.used_ids}, "min_markers": len(best.used_ids)}
+    try:
+        return joint_solve(carm_from_drill0=half @ best.carm_from_drill, carm_from_marker0={i: half @ t for i, t in best.carm_from_marker.items()},
+                           refine=False, **inputs)
+    except DrillnavError:
+        return best
+
+
+def _turn_part(turn: NDArray[np.float64], share: float) -> NDArray[np.float64]:
+    """``share`` of a rotation (4, 4) about a fixed axis (``turn``, no slide along its axis): the same axis, ``share`` of
+    its angle."""
+    point = np.linalg.lstsq(np.eye(3) - turn[:3, :3], turn[:3, 3], rcond=None)[0]  # a point on the axis
+    part = Rotation.from_rotvec(share * Rotation.from_matrix(turn[:3, :3]).as_rotvec()).as_matrix()
+    return make_transform(part, point - part @ point)
 
 
 def _mirror_across_beam(sol: JointSolution, view) -> NDArray[np.float64]:
