@@ -394,7 +394,7 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
     ``HORN_MIN_MARKERS`` markers on the joint solve's frames)."""
     if reg.fit_carm_from_drill is not None:
         # Registered half-way to a lone marker's mirror image: the tags are looked for where the best fit puts them.
-        reg = replace(reg, carm_from_drill=reg.fit_carm_from_drill, carm_from_marker={**reg.carm_from_marker, **(reg.fit_carm_from_marker or {})})
+        reg = replace(reg, carm_from_drill=reg.fit_carm_from_drill, carm_from_marker={**reg.carm_from_marker, **reg.fit_carm_from_marker})
     expected = predict_missing_tags(video, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
                                     carm_from_marker=reg.carm_from_marker)
     # A mirror image the refinement slid from (``mirror_unrefined``) widens the bound only: the search goes as with none.

@@ -559,7 +559,8 @@ def _half_way(best: JointSolution, mirror: NDArray[np.float64], solve: dict) -> 
     and the data fit the whole turn about equally: half-way, the error is at most half the turn whichever end is true,
     and the bound spans to the mirror image as before. Twin seed 13000 (flat markers, AP+lateral, first pose): marker
     38 alone in the AP view, the axis 27.5 mm / 10.6 deg off at the best fit, 16.1 mm / 6.8 deg half-way (turn 11.1
-    deg); seed 11100 (the AP view alone, second pose) 30.3 -> 14.6 mm. With two markers or more the plane's tilt also
+    deg); seed 11100 (the AP view alone, second pose) 30.3 -> 14.6 mm; seed 18202 (a flat panel, the AP view alone),
+    whose best fit was the nearer end, 7.3 -> 14.2 mm. With two markers or more the plane's tilt also
     shows through their magnifications: taken half-way too, 16 such registrations moved on 66 seeds with the markers flat
     and 69 with the surgeon's, 12 of them farther.
     """
