@@ -86,6 +86,13 @@ NAMED_BELOW_MARKERS = 2
 # 1838 mm off at the entry). Against runs without the rule, nothing else moved on seeds 6100-6105, 6300-6305,
 # 6600-6605 and 6900-6905 (M = 5); the right names checked by hand had at most 5.2 mm.
 NAMED_MAX_FRE_MM = 10.0
+# Nor when the tags' corners lie, RMS over every tag it uses, over this from where the registration puts them
+# (``DrillRegistration.corner_rms_px``). Two markers whose names are swapped lie as far apart in the camera as in
+# fluoroscopy, each within a few millimetres of where the other is posed, but their tags turned: twin seed 5006's third
+# frame (inlet+outlet), its two named tags swapped, registered 101 mm off with its corners 83 px RMS from the solve's
+# (FRE 9.5 and 5.7 mm); named right, 0.5 px. An outline's corners lie a few pixels off (OUTLINE_CORNER_SIGMA_PX), 17 px
+# at the worst measured.
+NAMED_MAX_CORNER_RMS_PX = 20.0
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
 # markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
 # benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
@@ -570,7 +577,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     (``used_before`` 0), ``named_among_set``: its cells name it among every tag of the set and its corners are its
     fitted edges', and the registration is then flagged, :func:`.video_fluoro.lone_name_unchecked`), more than ``used_before`` (the markers the frame's
     registration used without them; 0 when it was refused), one of them named, and every marker it uses lies within
-    ``NAMED_MAX_FRE_MM`` of where fluoroscopy puts it. A named tag whose marker misfits the others is rejected by the
+    ``NAMED_MAX_FRE_MM`` of where fluoroscopy puts it, its tags' corners within ``NAMED_MAX_CORNER_RMS_PX`` (RMS) of where it
+    puts them. A named tag whose marker misfits the others is rejected by the
     joint solve like any marker, and dropped; markers kept agree on their places in the camera and in fluoroscopy,
     which a wrong name, tens of millimetres off, does not.
     ``every``: the poses the registration is given (loose hypotheses included, as for the frame's own).
@@ -596,7 +604,7 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     alone = any((m.identified_by_code or (used_before == 0 and m.named_among_set)) and m.marker_id in used for m in named)
     if len(used) < max(1 if alone else 2, used_before + 1) or not used & {m.marker_id for m in named}:
         return None
-    if any(reg.fre_mm.get(i, np.inf) > NAMED_MAX_FRE_MM for i in used):
+    if any(reg.fre_mm.get(i, np.inf) > NAMED_MAX_FRE_MM for i in used) or reg.corner_rms_px > NAMED_MAX_CORNER_RMS_PX:
         return None
     return replace(trial, markers=tuple(m for m in trial.markers if not m.named_among_posed or m.marker_id in used)), reg
 

@@ -205,6 +205,15 @@ def test_a_frame_whose_posed_tags_read_only_in_part_registers_on_the_named_tags_
         mp.setattr(VideoMarkerLocator, "name_among_posed", wrong)
         with pytest.raises(MarkersNotFound, match="only 0 marker"):
             register_with_recovery(image, video, **common)
+    # Two of them alone, swapped: the markers lie as far apart in the camera as in fluoroscopy, each within 10 mm of the
+    # other's place, but their tags are turned. Borne out by those places alone, it registered 101 mm off, its tags'
+    # corners 83 px RMS from where it put them (NAMED_MAX_CORNER_RMS_PX).
+    swap = {21: 38, 38: 21}
+    two = lambda self, *a: tuple(replace(m, marker_id=swap[m.marker_id]) for m in right(self, *a) if m.marker_id in swap)  # noqa: E731
+    with _pytest.MonkeyPatch.context() as mp:
+        mp.setattr(VideoMarkerLocator, "name_among_posed", two)
+        with pytest.raises(MarkersNotFound, match="only 0 marker"):
+            register_with_recovery(image, video, **common)
 
     # Posed markers whose tags are not in the frame name nothing: still refused, with the reason.
     elsewhere = tuple(p for p in poses if p.marker_id not in truth)
