@@ -23,7 +23,7 @@ from .tag_border import border_shift_px, code_cells, moved_outline
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
 from .tag_recovery import RECOVERED_CORNER_SIGMA_PX, SQUARE_FIT_MAX_CORNER_SIGMA_PX, BorderSteps, dictionary_codes, fit_tag_edges, read_code, recover_tag
 from .tag_square_fit import SquareFit, fit_square_to_edges
-from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, on_frame_edge, outline_hypotheses
+from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, outline_hypotheses
 from .tag_search import identify_quad, search_tags
 from .transforms import make_transform
 
@@ -599,12 +599,6 @@ class VideoMarkerLocator:
                                                         place=lambda pred, spec=spec: fit_tag_edges(
                                                             gray_f, pred, tolerance_px=REPAIR_TOLERANCE_PX, partial=True,
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
-                    if placed is None and not hyp.edges_fitted and on_frame_edge(hyp.corners_px, width=gray.shape[1], height=gray.shape[0]):
-                        # An outline cut by the frame's edge that no placement repairs: its corners there are the frame's
-                        # (twin seed 13000, flat markers, AP+lateral, second frame: two corners on the frame's bottom edge
-                        # 20-28 px from the tag's, its normal 14 deg off, the axis 3.3 mm off under a 2.6 mm bound; without
-                        # it 2.3 mm). Not named.
-                        continue
                     marker = placed if placed is not None else marker
                 # Alone, nothing but the tag's own edges checks where it lies: a name among the set stands alone only on
                 # edges fitted to a view of its square (an outline bitten by a glove lay 28 px off, twin seed 3001).
