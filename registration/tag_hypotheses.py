@@ -45,8 +45,7 @@ from numpy.typing import NDArray
 from .tag_recovery import dictionary_codes, fit_tag_edges, read_code
 from .tag_search import tag_candidates
 
-__all__ = ["TagHypothesis", "outline_hypotheses", "on_frame_edge", "OUTLINE_CORNER_SIGMA_PX", "MIN_CELLS", "MIN_AGREEMENT", "MIN_MARGIN_CELLS",
-           "FRAME_EDGE_PX"]
+__all__ = ["TagHypothesis", "outline_hypotheses", "OUTLINE_CORNER_SIGMA_PX", "MIN_CELLS", "MIN_AGREEMENT", "MIN_MARGIN_CELLS"]
 
 # The corner noise (1 sigma, px) of a tag placed by its outline alone. On the operating-room twin (seeds 6104-7004,
 # tags of refused frames and of frames registered on one marker, about 150 px across) the outlines named this way
@@ -58,9 +57,6 @@ OUTLINE_CORNER_SIGMA_PX = 3.0
 MIN_CELLS = 6             # code cells read, at least
 MIN_AGREEMENT = 0.9       # of them agreeing with the named id
 MIN_MARGIN_CELLS = 2      # over every other wanted id
-# An outline's corner this near the frame's edge (px) is where the frame cuts the tag, not the tag's corner (outlines
-# come from a threshold at half resolution, so an edge pixel there is two here).
-FRAME_EDGE_PX = 2.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,10 +142,3 @@ def outline_hypotheses(gray: NDArray[np.uint8], *, dictionary: str, wanted: Sequ
                                            cells_read=n_read, cells_agreeing=mine, runner_up_agreeing=runner_up,
                                            set_runner_up_agreeing=set_runner_up)
     return [best[i] for i in sorted(best)]
-
-
-def on_frame_edge(corners_px: NDArray[np.float64], *, width: int, height: int) -> bool:
-    """Whether a corner of an outline (4, 2) px lies on the edge of a ``width`` x ``height`` frame, within
-    :data:`FRAME_EDGE_PX`: the frame cut the tag there, and the outline's corner is not the tag's."""
-    q = np.asarray(corners_px, dtype=np.float64)
-    return bool(((q <= FRAME_EDGE_PX) | (q >= np.array([width - 1, height - 1]) - FRAME_EDGE_PX)).any())

@@ -41,7 +41,6 @@ from .marker_pose import MarkerPose, planar_candidates
 from .markers import MarkerDesign, MarkerSet
 from .transforms import apply, invert, make_transform
 from .video_claims import claim_from_solution, claim_from_video, corroborate_loose, drill_from_marker, fit_constellation, paired_anchors, with_claims
-from .tag_hypotheses import OUTLINE_CORNER_SIGMA_PX, on_frame_edge
 from .video_markers import VideoDetections, VideoMarker
 
 __all__ = ["DrillRegistration", "PredictedError", "register_video_to_fluoro", "predicted_axis_error", "RELIABLE_POSITION_MM", "RELIABLE_ANGLE_DEG"]
@@ -102,24 +101,6 @@ class DrillRegistration:
     # ((view, (2,) pincushion and S shift at the field's corner, px), ...): each image intensifier view's
     # distortion as the joint solve estimated it (:func:`.joint_solve.project_distorted` draws with it).
     detector_distortion_px: tuple = ()
-
-
-def _solve_corners(marker: VideoMarker, camera: PinholeCamera) -> NDArray[np.float64]:
-    """The tag corners (4, 2) px the joint solve fits for ``marker``: its own, but for an outline named among the posed
-    markers (its edges not fitted, :data:`.tag_hypotheses.OUTLINE_CORNER_SIGMA_PX`) cut by the frame's edge, whose corners
-    on that edge are the frame's, not the tag's: those are NaN (left out), the tag fitted on the two or three corners
-    it keeps in the frame. Twin seed 13000 (flat markers, AP+lateral, second frame): a tag cut by the frame's bottom
-    edge named with two corners there 20-28 px from the tag's, its normal 14 deg off; fitted on them, the axis came
-    3.3 mm off under a 2.6 mm bound, marked reliable."""
-    corners = np.asarray(marker.corners_px, dtype=np.float64).reshape(4, 2)
-    if not (marker.named_among_posed and marker.corner_sigma_px >= OUTLINE_CORNER_SIGMA_PX):
-        return corners
-    cut = np.array([on_frame_edge(c[None], width=camera.width, height=camera.height) for c in corners])
-    if not cut.any() or cut.sum() > 2:
-        return corners
-    out = corners.copy()
-    out[cut] = np.nan
-    return out
 
 
 def _corner_extra_px(marker: VideoMarker, *, solve_sigma_px: float = CORNER_SIGMA_PX) -> float:
@@ -225,7 +206,7 @@ def register_video_to_fluoro(
                 start = carm_from_drill @ vids[i].camera_from_tag
                 start[:3, 3] = every[i].position_carm_mm
                 carm_from_marker[i] = start
-        solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: _solve_corners(vids[i], camera) for i in joinable},
+        solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
                      corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
                      fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
@@ -251,7 +232,7 @@ def register_video_to_fluoro(
             if gained:
                 joinable = sorted({*joinable, *gained})
                 carm_from_marker.update({i: camera_only[i] for i in gained})
-                solve.update(corners_px={i: _solve_corners(vids[i], camera) for i in joinable}, corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
+                solve.update(corners_px={i: vids[i].corners_px for i in joinable}, corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
                              min_markers=min(HORN_MIN_MARKERS, len(joinable)))
             solve["observations"] = {i: every[i].observations for i in joinable}
             sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
