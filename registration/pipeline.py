@@ -90,9 +90,10 @@ NAMED_MAX_FRE_MM = 10.0
 # (``DrillRegistration.corner_rms_px``). Two markers whose names are swapped lie as far apart in the camera as in
 # fluoroscopy, each within a few millimetres of where the other is posed, but their tags turned: twin seed 5006's third
 # frame (inlet+outlet), its two named tags swapped, registered 101 mm off with its corners 83 px RMS from the solve's
-# (FRE 9.5 and 5.7 mm); named right, 0.5 px. An outline's corners lie a few pixels off (OUTLINE_CORNER_SIGMA_PX), 17 px
-# at the worst measured.
-NAMED_MAX_CORNER_RMS_PX = 20.0
+# (FRE 9.5 and 5.7 mm); named right, 0.5 px. An outline's corners lie a few pixels off (OUTLINE_CORNER_SIGMA_PX), one
+# corner 28 px at the worst seen (twin seed 3001: a tag cut by the frame's edge), whose RMS over a tag is under 20 px.
+# 20 and 40 px moved the same registrations of the docs table's seeds (docs/accuracy_history.md, 7 Dec 2026).
+NAMED_MAX_CORNER_RMS_PX = 40.0
 # How far (px, per axis) a missing tag is looked for around its prediction from a registration on one or two
 # markers, on the recovery's 8 px grid (48 tries at most per tag, paid only by a tag not found where predicted;
 # benchmarks/tag_detection.py: 28-67 ms a frame when every missed tag of it is tried).
