@@ -41,6 +41,7 @@ from scipy.spatial.transform import Rotation
 from .camera import PinholeCamera
 from .camera_uncertainty import DEFAULT_INTRINSICS_UNCERTAINTY, camera_priors
 from .carm import intensifier_shift_px
+from .cut_corners import across_slides
 from .errors import MarkersNotFound
 from .markers import MarkerSet
 from .transforms import apply, invert, make_transform
@@ -189,6 +190,7 @@ def joint_solve(
     min_markers: int = 3,
     crowded_bbs: bool = True,
     corner_extra_px: dict[int, float] | None = None,
+    corner_slide_px: dict[int, NDArray[np.float64]] | None = None,
     fluoro_only: dict[int, tuple[tuple, NDArray[np.float64]]] | None = None,
     give_up_above_chi2: float | None = None,
     strokes: dict[int, tuple] | None = None,
@@ -219,7 +221,10 @@ def joint_solve(
     round's starting poses) is charged its detector's pull as extra noise (:data:`CROWDED_BB_PX`); False charges
     it like any BB. ``corner_extra_px``: {marker id: px} extra independent noise of each of that tag's corners
     (a recovered tag's larger stated noise, what its four corners' misfit to a view of its square shows,
-    :func:`square_misfit_noise_px`); absent: none.
+    :func:`square_misfit_noise_px`); absent: none. ``corner_slide_px``: {marker id: (4, 2) px} per corner of that tag, a
+    direction in the image along which the corner may lie off, its length the noise (1 sigma) along it (a corner where
+    the frame's edge cuts its tag's side lies somewhere on that side, :func:`.cut_corners.cut_corner_slides_px`);
+    (0, 0): none.
     ``fluoro_only``: {marker id: (observations as above, starting ``carm_from_marker`` (4, 4))} of markers posed in
     fluoroscopy that the camera does not see. Where a view's intensifier distortion is estimated, their BBs join
     the solve with poses of their own (in no tag corner, no vote, not in ``used_ids``): more of the field shows
@@ -260,16 +265,20 @@ def joint_solve(
     corner_extra = {i: float(v) for i, v in (corner_extra_px or {}).items() if v > 0}
     if not all(np.isfinite(v) for v in corner_extra.values()):
         raise ValueError(f"a tag's extra corner noise must be finite, got {corner_extra}")
+    corner_slide = {i: np.asarray(v, dtype=np.float64).reshape(4, 2) for i, v in (corner_slide_px or {}).items()}
+    if not all(np.all(np.isfinite(v)) for v in corner_slide.values()):
+        raise ValueError(f"a tag's corner slides must be finite, got {corner_slide}")
+    corner_slide = {i: v for i, v in corner_slide.items() if np.any(v != 0)}
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, anchors, dict(strokes or {}), dict(rolls or {}))
+            crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
     if not refine:
         return sol
     corner_min_px = outlier_chi * corner_sigma_px
-    clean = max(sol.marker_chi.values()) <= outlier_chi and not _corner_suspects(sol, corners_px, ids, corner_min_px) and all(
+    clean = max(sol.marker_chi.values()) <= outlier_chi and not _corner_suspects(sol, corners_px, ids, corner_min_px, corner_slide) and all(
         len(_trim(observations[i], sol.carm_from_marker[i], bb_outlier_chi * fluoro_sigma_px, sol.detector_distortion_px)[k][1]) == len(o[1])
         for i in ids for k, o in enumerate(observations[i]))
     if clean or (give_up_above_chi2 is not None and sol.chi2 > give_up_above_chi2):
@@ -289,11 +298,11 @@ def joint_solve(
         # marker itself is judged, a tag whose corners stand out, or a marker that would be rejected, is tried on
         # three corners (once per marker). Nothing stands out where every marker fits badly (a mirror start).
         standing_out = [i for i in ids if _stands_out(chi, i, ids, outlier_chi)]
-        suspects = [i for i in _corner_suspects(sol, corners_px, ids, corner_min_px) + sorted(standing_out, key=lambda i: -chi[i]) if i not in dropped]
+        suspects = [i for i in _corner_suspects(sol, corners_px, ids, corner_min_px, corner_slide) + sorted(standing_out, key=lambda i: -chi[i]) if i not in dropped]
         if suspects:
             i = suspects[0]
             dropped[i] = ()
-            found, without = _corner_outlier(ids, observations, corners_px, drill0, markers0, args, i, min_px=corner_min_px, current=sol)
+            found, without = _corner_outlier(ids, observations, corners_px, drill0, markers0, args, i, min_px=corner_min_px, current=sol, slides=corner_slide)
             if found is not None:
                 corners_px = {**corners_px, i: corners_px[i].copy()}
                 corners_px[i][found] = np.nan
@@ -394,20 +403,22 @@ def _stands_out(chi: dict[int, float], marker_id: int, ids, outlier_chi: float) 
     return chi[marker_id] > outlier_chi and chi[marker_id] > 3.0 * float(np.median([chi[j] for j in ids if j != marker_id] or [0.0]))
 
 
-def _corner_errors_px(sol: JointSolution, corners_px) -> dict[int, NDArray[np.float64]]:
-    """{marker id: (4,) px} each tag corner's distance from its projection, NaN for a corner left out."""
-    return {i: np.linalg.norm(p - corners_px[i], axis=1) for i, p in sol.corner_projections_px.items()}
+def _corner_errors_px(sol: JointSolution, corners_px, slides: dict[int, NDArray[np.float64]]) -> dict[int, NDArray[np.float64]]:
+    """{marker id: (4,) px} each tag corner's distance from its projection, NaN for a corner left out; across its
+    slide (``corner_slide_px``) where it has one (along it the corner is not measured)."""
+    return {i: np.linalg.norm(across_slides(p - corners_px[i], slides[i]) if i in slides else p - corners_px[i], axis=1)
+            for i, p in sol.corner_projections_px.items()}
 
 
-def _corner_suspects(sol: JointSolution, corners_px, ids, min_px: float) -> list[int]:
+def _corner_suspects(sol: JointSolution, corners_px, ids, min_px: float, slides: dict[int, NDArray[np.float64]]) -> list[int]:
     """Markers whose tag corners fit worse than ``min_px`` RMS and 3 times the other tags' median, worst first."""
-    rms = {i: float(np.sqrt(np.nanmean(e**2))) for i, e in _corner_errors_px(sol, corners_px).items()}
+    rms = {i: float(np.sqrt(np.nanmean(e**2))) for i, e in _corner_errors_px(sol, corners_px, slides).items()}
     out = [i for i in ids if rms[i] > min_px and rms[i] > 3.0 * float(np.median([rms[j] for j in ids if j != i] or [0.0]))]
     return sorted(out, key=lambda i: -rms[i])
 
 
 def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marker_id: int, *, min_px: float,
-                    current: JointSolution) -> tuple[int | None, JointSolution | None]:
+                    current: JointSolution, slides: dict[int, NDArray[np.float64]]) -> tuple[int | None, JointSolution | None]:
     """The index of the one corner of ``marker_id``'s tag that, left out, makes the tag fit, and the robust fit
     without it (from ``drill0``, ``markers0``); (None, None) if none does. ``current``: the robust fit with every corner.
 
@@ -425,7 +436,7 @@ def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marke
     # The two corners farthest from where the solution puts them: a displaced corner is the farthest (the tag's
     # pose, held by its marker's BBs, cannot follow it), and the second's fit without it is the contrast the
     # chi-square test needs (any other corner left out keeps the displaced one in). Two solves, not four.
-    off = np.linalg.norm(current.corner_projections_px[marker_id] - corners_px[marker_id], axis=1)
+    off = _corner_errors_px(current, corners_px, slides)[marker_id]
     for k in [int(j) for j in np.argsort(-np.where(np.isfinite(off), off, -np.inf))[:2]]:
         if not np.isfinite(corners_px[marker_id][k]).all():
             continue
@@ -436,10 +447,10 @@ def _corner_outlier(ids, observations, corners_px, drill0, markers0, args, marke
         except (np.linalg.LinAlgError, ValueError):
             continue
         chi2[k], fitted[k] = sol.chi2, sol
-        errors = _corner_errors_px(sol, trial)
+        errors = _corner_errors_px(sol, trial, slides)
         others = [e for i, e in errors.items() if i != marker_id]
         floor = max(min_px, 3.0 * float(np.nanmedian(np.concatenate(others)))) if others else min_px
-        left_out = float(np.linalg.norm(sol.corner_projections_px[marker_id][k] - corners_px[marker_id][k]))
+        left_out = float(_corner_errors_px(sol, corners_px, slides)[marker_id][k])
         if np.nanmax(errors[marker_id]) <= floor and left_out > 3.0 * floor:
             fits.add(k)
     if len(chi2) < 2:
@@ -580,8 +591,9 @@ def _trim(observations, carm_from_marker, max_px: float, distortion: tuple = ())
     return tuple(out)
 
 
-def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shift_px: float,
-                     scale_px: float, extra_px: list[NDArray[np.float64]] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shift_px: float, scale_px: float,
+                     extra_px: list[NDArray[np.float64]] | None = None,
+                     slide_px: list[NDArray[np.float64]] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Whitening of groups of image points whose errors share a shift and a scale within each group.
 
     groups_px : each group's image points (N, 2), in row order (rows x0, y0, x1, y1, ...). A group's 2N errors
@@ -593,17 +605,21 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
     whitening of the group's covariance, each group's rows still depending on its own marker alone.
     ``extra_px``: per group, (N,) extra independent noise of each point (0: none); a group with any is whitened by
     the inverse Cholesky factor of its covariance (its rows' noise 1, none of them a shared mode).
+    ``slide_px``: per group, (N, 2) a direction of each point's extra noise, its length that noise's sigma (adds
+    ``v v^T`` to the point's 2x2 block; (0, 0): none); a group with any is whitened like one with extra noise.
     """
     blocks, noise, shared = [], [], []
     for g, pts in enumerate(groups_px):
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         n = len(pts)
-        extra = None if extra_px is None else np.asarray(extra_px[g], dtype=np.float64).reshape(-1)
-        if extra is not None and np.any(extra > 0):
+        extra = np.zeros(n) if extra_px is None else np.asarray(extra_px[g], dtype=np.float64).reshape(-1)
+        slide = np.zeros((n, 2)) if slide_px is None else np.asarray(slide_px[g], dtype=np.float64).reshape(n, 2)
+        if np.any(extra > 0) or np.any(slide != 0):
             rel = (pts - pts.mean(axis=0)).ravel()
             radius = float(np.mean(np.linalg.norm(rel.reshape(-1, 2), axis=1)))
             ux, uy = np.tile([1.0, 0.0], n), np.tile([0.0, 1.0], n)
             cov = np.diag(sigma_px**2 + np.repeat(extra**2, 2)) + shift_px**2 * (np.outer(ux, ux) + np.outer(uy, uy))
+            cov += block_diag(*[np.outer(v, v) for v in slide])
             if n >= 3 and radius > 0:
                 cov += (scale_px / radius) ** 2 * np.outer(rel, rel)
             blocks.append(np.linalg.inv(np.linalg.cholesky(cov)))
@@ -629,7 +645,7 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], anchors: dict, strokes: dict, rolls: dict, *, loss: str,
+           corner_extra: dict[int, float], corner_slide: dict[int, NDArray[np.float64]], anchors: dict, strokes: dict, rolls: dict, *, loss: str,
            max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
@@ -679,7 +695,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     c_groups = [np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)[keep] for i, keep in zip(ids, c_keep)]
     c_obj, c_img, c_mk = c_obj_all[c_sel], np.concatenate(c_groups), c_mk_all[c_sel]
     c_extra = [np.full(int(keep.sum()), corner_extra.get(i, 0.0)) for i, keep in zip(ids, c_keep)] if any(i in corner_extra for i in ids) else None
-    wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra)
+    c_slide = [corner_slide[i][keep] if i in corner_slide else np.zeros((int(keep.sum()), 2)) for i, keep in zip(ids, c_keep)] if any(i in corner_slide for i in ids) else None
+    wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra, c_slide)
     # Ring strokes of edge-on markers (the camera's markers only): one row each, an anchor's image along a normal.
     s_rows = [(k, view, np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1),
                np.asarray(sg, dtype=np.float64).reshape(-1))

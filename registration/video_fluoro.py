@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
 from .carm import CArmView
+from .cut_corners import cut_corner_slides_px
 from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
 from .edge_on_ring import RingStroke, measure_ring_stroke
@@ -209,6 +210,7 @@ def register_video_to_fluoro(
         solve = dict(observations={i: every[i].observations for i in joinable}, corners_px={i: vids[i].corners_px for i in joinable},
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
                      corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
+                     corner_slide_px={i: cut_corner_slides_px(vids[i].corners_px, width=camera.width, height=camera.height) for i in joinable},
                      fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
                                   if i not in joinable and p.converged and p.mirror_carm_from_marker is None and not p.needs_camera})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)
@@ -233,6 +235,7 @@ def register_video_to_fluoro(
                 joinable = sorted({*joinable, *gained})
                 carm_from_marker.update({i: camera_only[i] for i in gained})
                 solve.update(corners_px={i: vids[i].corners_px for i in joinable}, corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
+                             corner_slide_px={i: cut_corner_slides_px(vids[i].corners_px, width=camera.width, height=camera.height) for i in joinable},
                              min_markers=min(HORN_MIN_MARKERS, len(joinable)))
             solve["observations"] = {i: every[i].observations for i in joinable}
             sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)

@@ -15,9 +15,11 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 
 from .aruco_detect import detect_aruco
 from .camera import PinholeCamera
+from .cut_corners import across_slides, cut_corner_slides_px
 from .markers import MarkerSet
 from .tag_border import border_shift_px, code_cells, moved_outline
 from .tag_edges import edge_corners, edge_profiles, fit_edge_lines, step_positions
@@ -601,7 +603,7 @@ class VideoMarkerLocator:
                                                             square=lambda steps: self._square_fit(steps, spec=spec, predicted_px=pred)).corners_px)
                     marker = placed if placed is not None else marker
                 # Alone, nothing but the tag's own edges checks where it lies: a name among the set stands alone only on
-                # edges fitted to a view of its square (an outline bitten by a glove lay 28 px off, twin seed 3001).
+                # edges fitted to a view of its square (an outline cut by the frame's edge lay 28 px off, twin seed 3001).
                 alone = hyp.named_among_set and hyp.edges_fitted and marker.reprojection_error_px <= SQUARE_MISFIT_MIN_PX
                 named.append(replace(self._border_shifted(marker, spec=spec, gray=gray_f), named_among_posed=True, identified_by_code=by_code,
                                      named_among_set=alone))
@@ -636,22 +638,56 @@ class VideoMarkerLocator:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         best = int(np.argmin(np.asarray(errs).ravel()))
         rvec, tvec = cv2.solvePnPRefineLM(obj, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
+        sigma = self.corner_sigma_px if corner_sigma_px is None else float(corner_sigma_px)
+        # A corner the frame's edge made (an outline the edge cuts) lies somewhere along its side: weighed so, across it.
+        slides = cut_corner_slides_px(corners, width=self.camera.width, height=self.camera.height)
+        slid = bool(np.any(slides != 0))
+        whiten = _corner_whitening(sigma, slides)
+        if slid:
+            rvec, tvec = _refine_whitened(obj, corners, k, dist, rvec, tvec, whiten)
         rot, dr = cv2.Rodrigues(rvec)  # dr: dR/d(rvec), 3x9 (R row-major)
         camera_from_tag = make_transform(rot, tvec.ravel())
         bb_tag = spec.bb_tag_mm
         x_d = rot @ bb_tag + tvec.ravel()
         proj, jac = cv2.projectPoints(obj, rvec, tvec, k, dist)
-        err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - corners) ** 2, axis=1))))
+        err = float(np.sqrt(np.mean(np.sum(across_slides(proj.reshape(4, 2) - corners, slides) ** 2, axis=1))))
         # First-order covariance of the 6 pose parameters, pushed to X_D.
         j = jac[:, :6]
-        normal = j.T @ j
-        sigma = self.corner_sigma_px if corner_sigma_px is None else float(corner_sigma_px)
+        if slid:
+            jw = np.concatenate([w @ j[2 * c:2 * c + 2] for c, w in enumerate(whiten)])
+            normal, scale = jw.T @ jw, 1.0
+        else:
+            normal, scale = j.T @ j, sigma**2
         try:  # a tag seen at any usable angle gives a well-conditioned 6x6 normal matrix: an inverse (0.2 ms less than pinv)
-            cov_pose = np.linalg.inv(normal) * sigma**2
+            cov_pose = np.linalg.inv(normal) * scale
         except np.linalg.LinAlgError:
-            cov_pose = np.linalg.pinv(normal) * sigma**2
+            cov_pose = np.linalg.pinv(normal) * scale
         # dX_D/d(rvec) from Rodrigues' own Jacobian, dX_D/dt = I.
         jx = np.hstack([(dr.reshape(3, 3, 3) @ bb_tag).T, np.eye(3)])
         cov = jx @ cov_pose @ jx.T
         return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err,
                            recovered=corner_sigma_px is not None, corner_sigma_px=sigma)
+
+
+def _corner_whitening(sigma_px: float, slides_px: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """Per corner, the (2, 2) whitening of its error: covariance ``sigma_px``^2 I plus its slide's ``v v^T``."""
+    return [np.linalg.inv(np.linalg.cholesky(sigma_px**2 * np.eye(2) + np.outer(v, v))) for v in np.asarray(slides_px).reshape(4, 2)]
+
+
+def _refine_whitened(obj: NDArray[np.float64], corners: NDArray[np.float64], k: NDArray[np.float64], dist: NDArray[np.float64],
+                     rvec: NDArray[np.float64], tvec: NDArray[np.float64], whiten: list[NDArray[np.float64]]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The tag's pose (rvec, tvec (3, 1)) minimising its corners' whitened errors (scipy's Levenberg-Marquardt, from the given pose)."""
+    w = np.zeros((8, 8))
+    for c, wc in enumerate(whiten):
+        w[2 * c:2 * c + 2, 2 * c:2 * c + 2] = wc
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        proj, _ = cv2.projectPoints(obj, x[:3], x[3:], k, dist)
+        return w @ (proj.reshape(8) - corners.reshape(8))
+
+    def jacobian(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        _, jac = cv2.projectPoints(obj, x[:3], x[3:], k, dist)
+        return w @ jac[:, :6]
+
+    x = least_squares(residuals, np.concatenate([np.ravel(rvec), np.ravel(tvec)]), jac=jacobian, method="lm").x
+    return x[:3].reshape(3, 1), x[3:].reshape(3, 1)

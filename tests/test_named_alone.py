@@ -102,17 +102,19 @@ def test_a_tag_named_among_the_whole_set_registers_alone_in_a_frame_otherwise_re
 def test_a_name_among_the_set_on_an_outline_whose_edges_were_not_fitted_does_not_stand_alone():
     """Seed 3001, the inlet+outlet pair, first drill pose: marker 41's tag, its code read in part, is named among the
     whole set, but the tag runs off the frame's bottom edge: its outline's two lower corners lie on that edge (its edges
-    not fitted), misfit a view of its square by 4 px and lie 12 and 28 px from the tag's. Alone it put the axis 36.7 mm off (in the study's three-marker subsets
+    not fitted) and lie 12 and 28 px from the tag's. Alone it put the axis 36.7 mm off (in the study's three-marker subsets
     without marker 14): it is a hypothesis only, kept beside another marker that bears it out, as before."""
     import accuracy
 
     from drillnav.registration.tag_hypotheses import OUTLINE_CORNER_SIGMA_PX
-    from drillnav.registration.video_markers import SQUARE_MISFIT_MIN_PX
+    from drillnav.registration.cut_corners import cut_corner_slides_px
 
     scene, k = operating_room_scene(3001, "inlet+outlet")
     _, video, image = accuracy.camera_shots(scene, seed=3001, k=k, poses=1)[0]
     named = {m.marker_id: m for m in accuracy._locator(scene).name_among_posed(image, replace(video, markers=()), [16, 41])}
     assert 41 in named, "marker 41's outline is no longer named: the frame no longer tests it"
     bitten = named[41]
-    assert bitten.corner_sigma_px == OUTLINE_CORNER_SIGMA_PX and bitten.reprojection_error_px > SQUARE_MISFIT_MIN_PX
+    # Its two corners on the frame's edge slide along their sides (across them it fits a view of its square).
+    slides = cut_corner_slides_px(bitten.corners_px, width=scene.calibrated_camera.width, height=scene.calibrated_camera.height)
+    assert bitten.corner_sigma_px == OUTLINE_CORNER_SIGMA_PX and int(np.sum(np.any(slides != 0, axis=1))) == 2
     assert not bitten.named_among_set
