@@ -5,9 +5,9 @@ on the frame's edge are where the tag's sides leave the frame, not its corners: 
 the same side, by as much as the part of the side the frame cut off (seed 3001's marker 41: 12 and 28 px; seed
 13000's marker 38, flat markers, AP+lateral: 28 and 20 px, which put the axis 3.3 mm off at the entry under a 2.6 mm
 bound). Such a corner still shows where its side runs, across it, to a few pixels. Left out altogether, the tag
-loses that too (tried: a registration on such a tag, seed 14601, went 0.83 -> 1.40 mm). So the joint solve takes it
-with a slide: its noise along its side as large as the tag's side (:func:`cut_corner_slides_px`), across it as any
-outline corner's.
+loses that too (tried: a registration on such a tag, seed 14601, went 0.83 -> 1.40 mm). So the tag's own pose
+(:class:`.video_markers.VideoMarkerLocator`) and the joint solve take it with a slide: its noise along its side as
+large as the tag's side (:func:`cut_corner_slides_px`), across it as any outline corner's.
 """
 
 from __future__ import annotations

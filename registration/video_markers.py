@@ -642,15 +642,16 @@ class VideoMarkerLocator:
         # A corner the frame's edge made (an outline the edge cuts) lies somewhere along its side: weighed so, across it.
         slides = cut_corner_slides_px(corners, width=self.camera.width, height=self.camera.height)
         slid = bool(np.any(slides != 0))
-        whiten = _corner_whitening(sigma, slides)
         if slid:
+            whiten = _corner_whitening(sigma, slides)
             rvec, tvec = _refine_whitened(obj, corners, k, dist, rvec, tvec, whiten)
         rot, dr = cv2.Rodrigues(rvec)  # dr: dR/d(rvec), 3x9 (R row-major)
         camera_from_tag = make_transform(rot, tvec.ravel())
         bb_tag = spec.bb_tag_mm
         x_d = rot @ bb_tag + tvec.ravel()
         proj, jac = cv2.projectPoints(obj, rvec, tvec, k, dist)
-        err = float(np.sqrt(np.mean(np.sum(across_slides(proj.reshape(4, 2) - corners, slides) ** 2, axis=1))))
+        off = proj.reshape(4, 2) - corners
+        err = float(np.sqrt(np.mean(np.sum((across_slides(off, slides) if slid else off) ** 2, axis=1))))
         # First-order covariance of the 6 pose parameters, pushed to X_D.
         j = jac[:, :6]
         if slid:
