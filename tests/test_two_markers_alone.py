@@ -12,6 +12,10 @@ Two markers may also disagree with neither over the misfit limit in their joint 
 lateral view alone, the first drill pose) rests on markers 18 and 41, marker 41 posed on four BBs 76 mm off. Together
 they fit at chi 1.8 and 4.0 (the limit 4.0), but their joint chi-square was 953 against 1.6 and 3.7 alone, and the
 axis lay 31.7 mm off under a 7.8 mm bound. The pair's cost of sharing one drill pose now counts too.
+
+Since a recovered tag's cells beside a glove or a highlight's halo are left unread (``read_code(covers=True)``), the
+frame of seed 11901 also recovers marker 22's tag and registers on markers 19 and 22, 1.80 mm off within its 2.87 mm
+bound: that test reads the recovered tags' cells as before, to keep the two markers that fit only alone.
 """
 
 import sys
@@ -52,7 +56,11 @@ def _assert_flagged_and_bounded(pe, off_mm: float, off_deg: float) -> None:
     assert pe.angle90_deg >= off_deg, (pe.angle90_deg, off_deg)
 
 
-def test_two_markers_that_fit_only_alone_are_bounded_by_each():
+def test_two_markers_that_fit_only_alone_are_bounded_by_each(monkeypatch):
+    from drillnav.registration import tag_recovery
+
+    read_code = tag_recovery.read_code
+    monkeypatch.setattr(tag_recovery, "read_code", lambda *args, **kwargs: read_code(*args, **{**kwargs, "covers": False}))
     pe, off_mm, off_deg = _one_view(11901, "random", 0, "p+1s+20", (19, 27))
     assert off_deg > 10.0, f"the axis is {off_deg:.1f} deg off: the scene no longer tests this"
     _assert_flagged_and_bounded(pe, off_mm, off_deg)
