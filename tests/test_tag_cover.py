@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tag_detection import _true_corners  # noqa: E402  (the twin's true corners, as the detection benchmark scores them)
 from tag_frames import synthetic_tag_frame  # noqa: E402
 from twin_images import study_shot  # noqa: E402
