@@ -90,7 +90,8 @@ def test_drawn_axis_on_the_published_axis_of_the_twin(twin, page):
         for name, g in got.items():
             if g["drawn"]["stale"] or name not in twin["views"]:
                 continue
-            stamp = min(twin["axes"], key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))
+            # the subscriber's thread adds axes meanwhile: search a copy of the stamps taken so far
+            stamp = min(list(twin["axes"]), key=lambda s: abs(s - g["drawn"]["source_frame_stamp_ns"]))
             assert abs(stamp - g["drawn"]["source_frame_stamp_ns"]) < 1000, "the page drew an axis the node never published"
             axis, view = twin["axes"][stamp], twin["views"][name]
             p = np.asarray(axis["point_mm"])
