@@ -10,6 +10,7 @@ set is rendered once per process and handed out read-only, so a test that drew o
 """
 
 from dataclasses import replace
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -119,6 +120,19 @@ def gloved_frame():
 CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "cxr.nii.gz"
 
 
+@lru_cache(maxsize=1)
+def _patient():
+    """The real CT as the twin's patient (``accuracy.load_patient``), loaded once per process: reading and converting it
+    costs about 3 s of CPU, and most tests of the operating-room twin ask for it. Its CT is handed out read-only (a
+    test that wrote into the shared patient would fail loudly; the attenuation volume stays writable, as numba's DRR
+    kernel was compiled for it); its DRR cache is shared, so a view another test rendered is rendered once."""
+    import accuracy
+
+    patient = accuracy.load_patient(CT)
+    patient.volume.data.setflags(write=False)
+    return patient
+
+
 def operating_room_scene(seed: int, pair: str, *, marker_tilt_deg: tuple[float, float] | None = None, **scene_args):
     """The accuracy study's scene of ``seed`` and view ``pair`` (every degradation, the real CT as anatomy): (scene, k),
     k the pair's index, which seeds its images (``accuracy.camera_shots``). Skips the test where the CT is absent.
@@ -129,7 +143,7 @@ def operating_room_scene(seed: int, pair: str, *, marker_tilt_deg: tuple[float, 
         pytest.skip("../shared/data/ct is not present on this machine (the twin's scene needs the real CT as its anatomy)")
     import accuracy
 
-    patient = accuracy.load_patient(CT)
+    patient = _patient()
     pairs = list(accuracy._pairs(np.random.default_rng(seed)).items())
     k = [p for p, _ in pairs].index(pair)
     degradations = Degradations.parse("all")
