@@ -479,7 +479,8 @@ def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, sear
 
     The pose from one view is off along that view's beam by a millimetre or two, which shifts the whole
     projected pattern in another view: each (design BB, blob) pair proposes a shift, the one that matches
-    most BBs wins. None when fewer than ``min_bbs`` match.
+    most BBs wins. None when fewer than ``min_bbs`` match, or when a shift that places the pattern elsewhere (over
+    two tolerances away) matches as many: an ambiguous claim is none.
 
     search_px, tol_px : in the reference detector's pixels (:data:`.carm.REFERENCE_PIXEL_MM`), so the same
         millimetres on any detector; converted to ``view``'s own here.
@@ -508,15 +509,18 @@ def claim_bbs(view: CArmView, carm_from_marker, design_bbs_mm, blobs_px, *, sear
     j = np.argmin(d, axis=2)
     near = np.take_along_axis(d, j[:, :, None], axis=2)[:, :, 0]
     ok = near <= tol_px
-    best = None
+    tried = []
     for k in np.argsort(-ok.sum(axis=1), kind="stable")[:8]:
         keep = _one_bb_per_blob(ok[k], j[k], near[k])
-        n = int(keep.sum())
-        if best is None or n > best[0]:
-            best = (n, keep, j[k])
-    if best is None or best[0] < min_bbs:
+        tried.append((int(keep.sum()), keep, j[k], shifts[k]))
+    n_best = max(t[0] for t in tried)
+    if n_best < min_bbs:
         return None
-    _, ok, j = best
+    _, ok, j, shift = next(t for t in tried if t[0] == n_best)
+    # As many BBs on a shift that places the pattern elsewhere (farther than two tolerances: not the same match with
+    # one pair's shift for another's) is no claim: which of the two is the marker nothing here tells.
+    if any(t[0] == n_best and np.hypot(*(t[3] - shift)) > 2.0 * tol_px for t in tried):
+        return None
     return np.asarray(design_bbs_mm)[ok], blobs_px[j[ok]]
 
 
