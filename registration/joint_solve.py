@@ -114,6 +114,13 @@ BB_SCALE_SIGMA_PX = 0.24
 # twin's truth (every fluoroscopy degradation but the intensifier's, seeds 6100-6102, every pair: RMS 3.55 px
 # under 0.8, 1.23 px at 1.0-1.2, 0.73 px at 1.2-1.5, 0.48-0.56 px beyond, less the 0.5 px of the rest).
 CROWDED_BB_PX = (np.array([0.8, 1.1, 1.35, 1.6]), np.array([3.5, 1.1, 0.5, 0.0]))
+# An intensifier's radial distortion is pincushion (its curved input screen imaged onto a flat output: outward at the
+# edge), never barrel: a barrel coefficient is held by this share of the prior's size (1 px at the field's corner on
+# the reference pixel: a slightly over-corrected image). Symmetric about zero, the prior let a single view's
+# constellation mirror fit better than the truth by bending the image into a barrel (twin seed 23702, flat markers,
+# one view: -7.7 px against the truth's +12.2, chi-square 10.7 against 40.7; the axis 76.7 mm / 36.6 deg off under a
+# 6.1 mm / 3.0 deg bound; tests/test_intensifier_mirror.py). The S distortion's sign follows the room's field: either.
+BARREL_SHARE = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -679,6 +686,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     f_center = np.concatenate([np.repeat(view.center_px[None], len(obj), axis=0) for i in every_id for view, obj, _ in observations[i]])
     f_corner_r = np.concatenate([np.full(len(obj), view.corner_radius_px) for i in every_id for view, obj, _ in observations[i]])
     dist_sigma = np.repeat([v.distortion_sigma_px for v in dist_views], 2).astype(np.float64)
+    barrel_sigma = dist_sigma * BARREL_SHARE  # (BARREL_SHARE)
+    is_pincushion = np.tile([True, False], n_dv)  # of each view's two coefficients, the radial one
     f_has = f_dv >= 0
     # A BB crowded by another's shadow (at the starting poses, which the robust rounds bring to the solution) is
     # charged its detector's pull (CROWDED_BB_PX).
@@ -769,7 +778,11 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         if every_corner:
             return np.stack([u, v], axis=-1)
         rc = np.einsum("ij,pj->pi", wc, (np.stack([u, v], axis=-1) - c_img).reshape(n, -1)) / c_noise
-        prior = np.concatenate([intr / prior_sigma, xs[:, i_dist:] / dist_sigma], axis=1) if n_dv else intr / prior_sigma
+        if n_dv:
+            dk = xs[:, i_dist:]
+            prior = np.concatenate([intr / prior_sigma, dk / np.where(is_pincushion & (dk < 0.0), barrel_sigma, dist_sigma)], axis=1)
+        else:
+            prior = intr / prior_sigma
         rest = [rf.reshape(n, -1), rc.reshape(n, -1)]
         if n_s:
             rest.append(stroke_rows(xs, rot_m, t_m))
@@ -836,7 +849,12 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         chi[i] = float(np.sqrt(np.mean(both**2)))
     dof = max(1, len(res) - n_par)
     red = float(np.sum(res**2) / dof)
-    jac = np.asarray(sol.jac)
+    jac = np.asarray(sol.jac).copy()
+    if n_dv:
+        # A pincushion held at zero from below by the barrel's stiff prior is still free upwards: the covariance takes
+        # the prior's own size there, as if it were symmetric (linearised at the stiff side, it would state 1 px).
+        rows = len(res) - 2 * n_dv + np.nonzero(is_pincushion)[0]
+        jac[rows, i_dist + np.nonzero(is_pincushion)[0]] = 1.0 / dist_sigma[is_pincushion]
     # Each group's noise (BBs, corners) from its own residuals, not one reduced chi-square for all: a global
     # factor would also scale the intrinsics' prior, whose size the residuals say nothing about. Only the
     # contrasts within a group (tag, marker-view) tell its independent noise: a group's shared modes also

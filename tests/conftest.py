@@ -66,7 +66,7 @@ def put_when_matched(session, key_expr: str, payloads, timeout_s: float = 30.0) 
 COMPUTE_MODULES = frozenset({
     "test_aruco_detect.py", "test_bb_shape.py", "test_calibration.py", "test_camera_yaml.py", "test_cli_anatomy.py", "test_cli_ct.py", "test_cli_markers.py",
     "test_cli_register.py", "test_continuity.py", "test_ct_intake.py", "test_ct_registration.py", "test_display_overlays.py",
-    "test_few_markers.py", "test_fluoro_candidates.py", "test_fluoro_enhanced.py", "test_loose_rings.py", "test_fluoro_compressed.py", "test_fluoro_hard.py", "test_fluoro_pipeline.py", "test_intensifier.py",
+    "test_few_markers.py", "test_fluoro_candidates.py", "test_fluoro_enhanced.py", "test_loose_rings.py", "test_fluoro_compressed.py", "test_fluoro_hard.py", "test_fluoro_pipeline.py", "test_intensifier.py", "test_intensifier_mirror.py",
     "test_joint_solve.py", "test_kcr.py", "test_marker_as_built.py", "test_marker_pose_views.py", "test_marker_set_video.py", "test_markers.py",
     "test_pki.py", "test_predicted_error.py", "test_real_anatomy_background.py", "test_scene.py", "test_soak_analysis.py", "test_symmetric_pairing.py",
     "test_tag_border.py", "test_tag_detection.py", "test_tag_hypotheses.py", "test_tracked_markers.py", "test_tracking_covariance.py", "test_tag_recovery.py", "test_tag_search.py", "test_tag_square_fit.py", "test_twin_aim.py", "test_twin_degradations.py", "test_twin_detector.py", "test_video_claims.py",

@@ -31,7 +31,7 @@ def scene():
     return make_scene(seed=11, views="inlet,outlet", render=False)
 
 
-def _register(scene, rng, sigma_px: float, name: str = "outlet"):
+def _register(scene, rng, sigma_px: float, name: str = "outlet", true_shift_px=TRUE_SHIFT_PX):
     """One single-view registration of the 5 markers: (position error mm, 90 % bound mm, registration)."""
     plain = scene.views[name]
     view = CArmView(projection_matrix=plain.projection_matrix, rows=plain.rows, columns=plain.columns,
@@ -39,7 +39,7 @@ def _register(scene, rng, sigma_px: float, name: str = "outlet"):
     found = []
     for i, pose in scene.carm_from_marker.items():
         uv = view.project(apply(pose, scene.marker_set.by_id(i).bb_centers_mm))
-        uv = uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, TRUE_SHIFT_PX) + rng.normal(scale=0.35, size=uv.shape)
+        uv = uv + intensifier_shift_px(uv, view.center_px, view.corner_radius_px, true_shift_px) + rng.normal(scale=0.35, size=uv.shape)
         bbs = tuple(DetectedBB(center_px=p, diameter_px=10.0, large=False) for p in uv)
         found.append(DetectedMarker(marker_id=i, bbs=bbs, bb_index=np.arange(len(uv)), ring_ellipse=((0.0, 0.0), (1.0, 1.0), 0.0), mirrored=False,
                                     identification_cost_mm=0.0))
@@ -87,6 +87,20 @@ def test_an_intensifier_view_has_its_distortion_estimated_and_bounded(scene):
     point = np.array([[10.0, 20.0, 30.0]])
     assert np.allclose(project_distorted(view, point, ((view, coef),)) - view.project(point),
                        intensifier_shift_px(view.project(point), view.center_px, view.corner_radius_px, coef))
+
+
+def test_an_intensifier_is_pincushion_never_barrel(scene):
+    """Its curved input screen makes an intensifier's radial distortion outward at the edge: the solve holds a barrel
+    (which no intensifier makes) to a tenth of the prior a pincushion gets. Fed a barrel of the pincushion's size,
+    it estimates about none of it, where it finds most of the pincushion."""
+    def estimate(shift):
+        rng = np.random.default_rng(7)
+        return np.array([_register(scene, rng, IMAGE_INTENSIFIER_DISTORTION_PX, true_shift_px=shift)[2].detector_distortion_px[0][1] for _ in range(4)])
+
+    pincushion = estimate(np.array([10.0, 0.0]))
+    barrel = estimate(np.array([-10.0, 0.0]))
+    assert np.median(pincushion[:, 0]) > 4.0, pincushion
+    assert np.all(barrel[:, 0] > -2.0), barrel
 
 
 def test_a_flat_panel_view_adds_no_distortion(scene):
