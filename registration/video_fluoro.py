@@ -91,6 +91,10 @@ class DrillRegistration:
     # it fits within the margin): it widens the bound, but the tags the frame missed are looked for where the best
     # solution puts them alone, and named by their place as with no mirror (:func:`.pipeline.register_with_recovery`).
     mirror_unrefined: bool = False
+    # Two markers that fit only alone (:func:`_two_markers_alone`): each one's own solution (4, 4). The covariance is
+    # widened towards them, and predicted_axis_error's bounds reach their axes, as the mirror's: a covariance spanning
+    # a turn of tens of degrees, linearised, can fall short of it.
+    alone_carm_from_drill: tuple[NDArray[np.float64], ...] = ()
     # A lone marker whose unrefined mirror image fits about as well as the best is registered half-way to it
     # (:func:`_half_way`): the best fit's ``carm_from_drill`` (4, 4) and {id: (4, 4)} marker poses, where the missing
     # tags are looked for as before. None: the registration is the best fit itself.
@@ -244,6 +248,7 @@ def register_video_to_fluoro(
         sol = _with_strokes(sol, every, solve, carm_from_marker, marker_set)
         alternative, unrefined, fit = None, False, None
         views = {id(o[0]): o[0] for i in sol.used_ids for o in every[i].observations}
+        before_mirror = sol
         if len(views) == 1:
             sol, alternative, unrefined = _settle_constellation_mirror(sol, next(iter(views.values())), solve)
             if unrefined and len(sol.used_ids) == 1:
@@ -257,10 +262,18 @@ def register_video_to_fluoro(
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
         covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
-        for alone in _two_markers_alone(sol, solve):
+        alone_solutions = tuple(_two_markers_alone(sol, solve))
+        if alone_solutions and before_mirror.used_ids == sol.used_ids and not _same_drill(before_mirror, sol):
+            # Two markers that fit only alone, the constellation's mirror taken: the better of two misfits says little.
+            # The bounds reach the solution it left, and each marker's own solved from there too (one view: a marker
+            # alone keeps the side of its start). Twin seed 11901 (random pair, one view, first pose, recovered tags'
+            # cells read beside covers): the mirror (chi-square 151 against 1722) lay 47.6 deg off, and each marker's
+            # own from it as far; the bound reached 15 deg.
+            alone_solutions += (before_mirror.carm_from_drill, *_two_markers_alone(before_mirror, solve))
+        for alone in alone_solutions:
             covariance = _spanning(covariance, sol.carm_from_drill, alone, sol.pivot_carm_mm)
         extra = dict(covariance_drill=covariance, pivot_carm_mm=sol.pivot_carm_mm, method="joint", marker_poses=tuple(marker_poses),
-                     mirror_carm_from_drill=alternative, mirror_unrefined=unrefined, detector_distortion_px=sol.detector_distortion_px,
+                     mirror_carm_from_drill=alternative, alone_carm_from_drill=alone_solutions, mirror_unrefined=unrefined, detector_distortion_px=sol.detector_distortion_px,
                      fit_carm_from_drill=None if fit is None else fit.carm_from_drill, fit_carm_from_marker=None if fit is None else fit.carm_from_marker)
     common = sorted(set(common) | set(joinable))
     drill_from_carm = invert(carm_from_drill)
@@ -852,9 +865,11 @@ def predicted_axis_error(
     ang = np.degrees(np.arccos(np.clip(direction_c @ axis_c.direction, -1.0, 1.0)))
     p90, p95 = (float(v) for v in np.percentile(pos, [90, 95]))
     a90, a95 = (float(v) for v in np.percentile(ang, [90, 95]))
-    if registration.mirror_carm_from_drill is not None:
-        # The data do not rule out the mirror solution: the bounds reach the axis it gives.
-        alt = axis_drill.transformed(registration.mirror_carm_from_drill)
+    # The data do not rule out the mirror solution, nor (two markers that fit only alone) each marker's own: the bounds
+    # reach the axes they give.
+    others = (() if registration.mirror_carm_from_drill is None else (registration.mirror_carm_from_drill,)) + tuple(registration.alone_carm_from_drill)
+    for other in others:
+        alt = axis_drill.transformed(other)
         alt_pos = float(np.linalg.norm(alt.closest_point(working_point_carm_mm) - ref))
         alt_ang = alt.angle_deg(axis_c)
         p90, p95, a90, a95 = max(p90, alt_pos), max(p95, alt_pos), max(a90, alt_ang), max(a95, alt_ang)

@@ -16,6 +16,11 @@ axis lay 31.7 mm off under a 7.8 mm bound. The pair's cost of sharing one drill 
 Since a recovered tag's cells beside a glove or a highlight's halo are left unread (``read_code(covers=True)``), the
 frame of seed 11901 also recovers marker 22's tag and registers on markers 19 and 22, 1.80 mm off within its 2.87 mm
 bound: that test reads the recovered tags' cells as before, to keep the two markers that fit only alone.
+
+Since an intensifier's pincushion is held from going barrel (``joint_solve.BARREL_SHARE``), that pair's constellation
+mirror fits better than the solution it came from (chi-square 151 against 1722, both misfits): 98.5 mm / 47.6 deg off,
+and each marker solved alone from there keeps its side, so the bound reached 58 mm / 15 deg. The bounds now reach the
+solution the mirror left and each marker's own solved from it too (``DrillRegistration.alone_carm_from_drill``).
 """
 
 import sys
