@@ -26,33 +26,15 @@ solution the mirror left and each marker's own solved from it too (``DrillRegist
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import operating_room_scene  # noqa: E402  (tests/: the study's scene of a seed and pair)
+from twin_images import one_view_registration  # noqa: E402  (tests/: the study's registration of one view)
 
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, render_fluoro
-from drillnav.registration.fluoro_markers import detect_in_view
-from drillnav.registration.marker_pose import register_markers
-from drillnav.registration.video_fluoro import predicted_axis_error
 
 def _one_view(seed: int, pair: str, pose_index: int, view: str, markers: tuple[int, int]):
     """(predicted error, off mm, off deg) of the study's registration of ``view`` alone on the twin's ``seed``."""
-    import accuracy
-
-    scene, k = operating_room_scene(seed, pair)
-    image_rng = np.random.default_rng([seed, k, 1])
-    dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
-    poses = tuple(register_markers([dets[view]], [scene.views[view]], scene.marker_set))
-    pose, video, image = accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index]
-    video, reg = accuracy._register(scene, image, video, poses, joint=True)
+    _, _, reg, pe, off_mm, off_deg = one_view_registration(seed, pair, pose_index, view)
     assert tuple(reg.used_ids) == markers, reg.used_ids
-    entry = scene.corridor_entry_carm_mm
-    axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
-    true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(pose)
-    off_mm = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
-    pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
-    return pe, off_mm, axis.angle_deg(true_axis)
+    return pe, off_mm, off_deg
 
 
 def _assert_flagged_and_bounded(pe, off_mm: float, off_deg: float) -> None:

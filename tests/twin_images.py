@@ -172,6 +172,32 @@ def study_shot(seed: int, pair: str, pose_index: int, *, marker_tilt_deg: tuple[
     return scene, poses, pose, video, image
 
 
+def one_view_registration(seed: int, pair: str, pose_index: int, view: str | None = None, *, marker_tilt_deg: tuple[float, float] | None = None):
+    """The study's registration of one view of ``pair`` alone (``view``; None: the pair's first) on the twin's ``seed``,
+    drill pose ``pose_index``: (scene, the view's name, registration, its predicted error at the corridor's entry, the
+    axis's error there in mm, its angle error in deg)."""
+    import accuracy
+
+    from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, render_fluoro
+    from drillnav.registration.fluoro_markers import detect_in_view
+    from drillnav.registration.marker_pose import register_markers
+    from drillnav.registration.video_fluoro import predicted_axis_error
+
+    scene, k = operating_room_scene(seed, pair, marker_tilt_deg=marker_tilt_deg)
+    image_rng = np.random.default_rng([seed, k, 1])
+    dets = {n: detect_in_view(render_fluoro(scene, n, image_rng), scene.views[n], scene.marker_set) for n in scene.views}
+    view = next(iter(scene.views)) if view is None else view
+    poses = tuple(register_markers([dets[view]], [scene.views[view]], scene.marker_set))
+    pose, video, image = accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index]
+    video, reg = accuracy._register(scene, image, video, poses, joint=True)
+    entry = scene.corridor_entry_carm_mm
+    axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
+    true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(pose)
+    off_mm = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
+    pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
+    return scene, view, reg, pe, off_mm, axis.angle_deg(true_axis)
+
+
 def flat_marker_scene(seed: int):
     """The twin with the markers stuck flat on the skin (0-10 deg from the AP beam), AP + lateral, and its rendered
     log images {view name: (H, W)}: every marker face-on in the AP view and near edge-on in the lateral one."""
