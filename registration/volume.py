@@ -94,7 +94,12 @@ class Volume:
         """Values at patient points (N, 3) by trilinear (``order=1``) interpolation; ``outside`` beyond the grid."""
         ijk = apply(self.voxel_from_patient, np.atleast_2d(points_mm))
         coords = ijk[:, ::-1].T  # (k, j, i)
-        return ndimage.map_coordinates(np.asarray(self.data, dtype=np.float32), coords, order=order, mode="constant", cval=outside)
+        data = self.data
+        if not (order == 1 and (data.dtype == np.float32 or (data.dtype.kind in "iu" and data.dtype.itemsize <= 2))):
+            data = np.asarray(data, dtype=np.float32)
+        # Linear interpolation reads the voxels in double whatever their type: a CT's int16 (exact in float32) is
+        # read in place, not copied whole to float32 for each call (100 ms for a 133 x 512 x 512 CT).
+        return ndimage.map_coordinates(data, coords, order=order, output=np.float32, mode="constant", cval=outside)
 
     def contains(self, points_mm: ArrayLike) -> NDArray[np.bool_]:
         ijk = apply(self.voxel_from_patient, np.atleast_2d(points_mm))

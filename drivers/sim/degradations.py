@@ -32,6 +32,7 @@ twin renders exactly as it did before these switches existed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -229,12 +230,14 @@ def collimator_mask(rng: np.random.Generator, rows: int, columns: int) -> NDArra
     return cv2.GaussianBlur(covered.astype(np.float32), (0, 0), 2.0).astype(np.float64)
 
 
+@functools.lru_cache(maxsize=4)
 def ii_distortion_maps(rows: int, columns: int, *, pincushion_px: float, s_px: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """cv2.remap maps (each (rows, columns)) that distort an ideal detector image like an image intensifier.
+    """cv2.remap maps (each (rows, columns), read-only) that distort an ideal detector image like an image intensifier.
 
     Pincushion: a point at radius r moves outwards by ``pincushion_px`` (r / r_corner)^3;
     S distortion (the earth's field on the electron optics): it turns by an angle
-    growing with r^2, moving the field's edge ``s_px`` tangentially.
+    growing with r^2, moving the field's edge ``s_px`` tangentially. The last few are kept (every shot of a detector
+    uses the same maps; 70 ms each).
     """
     yy, xx = np.mgrid[0:rows, 0:columns].astype(np.float64)
     cx, cy = (columns - 1) / 2.0, (rows - 1) / 2.0
@@ -248,7 +251,10 @@ def ii_distortion_maps(rows: int, columns: int, *, pincushion_px: float, s_px: f
     c, s = np.cos(angle), np.sin(angle)
     src_x = cx + radial * (c * dx - s * dy)
     src_y = cy + radial * (s * dx + c * dy)
-    return src_x.astype(np.float32), src_y.astype(np.float32)
+    maps = src_x.astype(np.float32), src_y.astype(np.float32)
+    for m in maps:
+        m.setflags(write=False)
+    return maps
 
 
 # --- camera --------------------------------------------------------------------------------------------------

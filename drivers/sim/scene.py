@@ -30,6 +30,7 @@ from drillnav.registration.transforms import apply, from_rotvec, invert, make_tr
 
 from . import anatomy
 from .ct_anatomy import VoxelAnatomy
+from .blur import gaussian_blur_fft
 from .camera import render_markers
 from .degradations import LEAD_LINE_INTEGRAL, Box, Degradations, Hardware, collimator_mask, ii_distortion_maps, make_hardware
 from .xray import MU_PER_MM, add_box, add_cylinder, add_ellipsoids, add_ring, add_slab, add_spheres, pixel_rays
@@ -323,7 +324,7 @@ def render_fluoro(scene: Scene, view_name: str, rng: np.random.Generator, *, dos
     # Sizes in the detector plane are stated in the reference detector's pixels (PAPER_CARM): a coarser detector
     # sees the same millimetres in fewer of its pixels.
     per_px = PAPER_CARM["pixel_spacing_mm"][1] / view.pixel_spacing_mm[1]
-    scatter = 0.12 * cv2.GaussianBlur(primary, (0, 0), 35.0 * per_px)
+    scatter = 0.12 * gaussian_blur_fft(primary, 35.0 * per_px)
     counts = rng.poisson(primary + scatter).astype(np.float64)
     if deg.ii_distortion:
         # The intensifier's electron optics bend the image after the input phosphor caught the quanta.

@@ -37,8 +37,34 @@ def pixel_rays(view: CArmView, *, supersample: int = 1) -> tuple[NDArray[np.floa
 
 
 def _bin(image_ss: NDArray[np.float64], s: int) -> NDArray[np.float64]:
-    r, c = image_ss.shape
-    return image_ss.reshape(r // s, s, c // s, s).mean(axis=(1, 3))
+    """Sub-pixels (..., rows*s, columns*s) averaged to pixels (..., rows, columns)."""
+    *lead, r, c = image_ss.shape
+    return image_ss.reshape(*lead, r // s, s, c // s, s).mean(axis=(-3, -1))
+
+
+def _window(view: CArmView, corners_mm: NDArray[np.float64]) -> tuple[slice, slice] | None:
+    """Rows and columns (slices) of the detector that can see a body inside the convex hull of ``corners_mm`` (N, 3),
+    two pixels to spare; None where it misses the detector. The whole detector where a corner is not in front of the
+    source (the projection of the hull is then unbounded).
+
+    A ray that misses the body adds exactly nothing, so the shapes below compute their chords in this window alone:
+    the pelvis's ellipsoids, the K-wire and a retractor each cover a part of the field.
+    """
+    if np.any(view.depth_mm(corners_mm) <= 1.0):
+        return slice(0, view.rows), slice(0, view.columns)
+    px = view.project(corners_mm)
+    c0, r0 = np.floor(px.min(axis=0)).astype(int) - 2
+    c1, r1 = np.ceil(px.max(axis=0)).astype(int) + 3
+    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, view.columns), min(r1, view.rows)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
+def _box_corners(centre: NDArray[np.float64], axes_scaled: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 8 corners (8, 3) of the box ``centre + axes_scaled @ (+-1, +-1, +-1)``; ``axes_scaled`` (3, 3) columns."""
+    signs = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    return centre + signs @ axes_scaled.T
 
 
 def add_ellipsoids(
@@ -54,14 +80,18 @@ def add_ellipsoids(
     """
     src, d = rays if rays is not None else pixel_rays(view)
     for centre, axes, rot, mu in ellipsoids:
+        centre = np.asarray(centre, float)
+        win = _window(view, _box_corners(centre, np.asarray(rot, float) * np.asarray(axes, float)[None, :]))
+        if win is None:
+            continue
         a = (rot / np.asarray(axes, float)[None, :]).T  # local scaled coords: A (x - c)
         u = a @ (src - centre)
-        v = d @ a.T
+        v = d[win] @ a.T
         vv = np.einsum("...i,...i->...", v, v)
         uv = v @ u
         disc = uv * uv - vv * (u @ u - 1.0)
         chord = np.where(disc > 0, 2.0 * np.sqrt(np.maximum(disc, 0.0)) / vv, 0.0)
-        image += mu * chord
+        image[win] += mu * chord
 
 
 def add_spheres(
@@ -73,7 +103,11 @@ def add_spheres(
     *,
     supersample: int = 3,
 ) -> None:
-    """Add spheres by exact chord lengths in a window around each sphere's projection."""
+    """Add spheres by exact chord lengths in a window around each sphere's projection.
+
+    Spheres whose windows lie inside the detector and have one size are computed together (a ring is a thousand
+    of them); their chords are added in the spheres' order, as one at a time would add them.
+    """
     centres = np.asarray(centres_mm, float).reshape(-1, 3)
     radii = np.broadcast_to(np.asarray(radii_mm, float), (centres.shape[0],))
     mus = np.broadcast_to(np.asarray(mu, float), (centres.shape[0],))
@@ -83,25 +117,58 @@ def add_spheres(
     m_inv = np.linalg.inv(view.projection_matrix[:, :3])
     s = supersample
     offs = (np.arange(s) + 0.5) / s - 0.5
-    for c, r, m, p, g in zip(centres, radii, mus, px, mag):
-        half = int(np.ceil(r * g / min(view.pixel_spacing_mm) + 2))
-        c0, r0 = int(round(p[0])) - half, int(round(p[1])) - half
-        c1, r1 = c0 + 2 * half + 1, r0 + 2 * half + 1
-        cc0, rr0, cc1, rr1 = max(c0, 0), max(r0, 0), min(c1, view.columns), min(r1, view.rows)
-        if cc0 >= cc1 or rr0 >= rr1:
-            continue
-        u = (np.arange(cc0, cc1)[:, None] + offs).reshape(-1)
-        v = (np.arange(rr0, rr1)[:, None] + offs).reshape(-1)
-        uu, vv = np.meshgrid(u, v)
-        d = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ m_inv.T
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        w = c - src
-        if np.dot(w, d[d.shape[0] // 2, d.shape[1] // 2]) < 0:
-            d = -d
-        t = d @ w
-        dist2 = w @ w - t * t
-        chord = 2.0 * np.sqrt(np.maximum(r * r - dist2, 0.0))
-        image[rr0:rr1, cc0:cc1] += m * _bin(chord, s)
+    halves = np.ceil(radii * mag / min(view.pixel_spacing_mm) + 2).astype(int)
+    corner = np.rint(px).astype(int) - halves[:, None]  # (column, row) of each window's first pixel
+    inside = (corner[:, 0] >= 0) & (corner[:, 1] >= 0) & (corner[:, 0] + 2 * halves + 1 <= view.columns) & (corner[:, 1] + 2 * halves + 1 <= view.rows)
+    for i in np.flatnonzero(~inside):
+        _add_sphere_clipped(image, corner[i], halves[i], centres[i] - src, radii[i], mus[i], m_inv, offs)
+    for half in np.unique(halves[inside]):
+        group = np.flatnonzero(inside & (halves == half))
+        for chunk in np.array_split(group, -(-group.size // 256)):
+            _add_spheres_inside(image, corner[chunk], int(half), centres[chunk] - src, radii[chunk], mus[chunk], m_inv, offs)
+
+
+def _sphere_rays(u: NDArray[np.float64], v: NDArray[np.float64], m_inv: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit ray directions (..., rows*s, columns*s, 3) through sub-pixels ``u`` (..., columns*s) and ``v`` (..., rows*s),
+    oriented towards the sphere at ``w`` (..., 3) from the source (the middle ray decides, one per window)."""
+    uu = np.broadcast_to(u[..., None, :], (*u.shape[:-1], v.shape[-1], u.shape[-1]))
+    vv = np.broadcast_to(v[..., :, None], uu.shape)
+    d = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ m_inv.T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    middle = d[..., d.shape[-3] // 2, d.shape[-2] // 2, :]
+    flip = np.einsum("...i,...i->...", w, middle) < 0
+    return np.where(flip[..., None, None, None], -d, d)
+
+
+def _chords(d: NDArray[np.float64], w: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Chord lengths (..., rows*s, columns*s) of rays ``d`` through spheres of radius ``r`` (...) at ``w`` (..., 3)."""
+    t = np.einsum("...rci,...i->...rc", d, w)
+    dist2 = np.einsum("...i,...i->...", w, w)[..., None, None] - t * t
+    return 2.0 * np.sqrt(np.maximum(np.asarray(r)[..., None, None] ** 2 - dist2, 0.0))
+
+
+def _add_spheres_inside(image, corner, half: int, w, r, mu, m_inv, offs) -> None:
+    """K spheres whose (2 half + 1)-pixel windows at ``corner`` (K, 2) lie inside the detector."""
+    n, s = 2 * half + 1, offs.size
+    steps = (np.arange(n)[:, None] + offs).reshape(-1)
+    u = corner[:, 0:1] + steps
+    v = corner[:, 1:2] + steps
+    pixels = np.asarray(mu)[:, None, None] * _bin(_chords(_sphere_rays(u, v, m_inv, w), w, r), s)
+    rows = corner[:, 1, None, None] + np.arange(n)[None, :, None]
+    cols = corner[:, 0, None, None] + np.arange(n)[None, None, :]
+    np.add.at(image, (np.broadcast_to(rows, pixels.shape), np.broadcast_to(cols, pixels.shape)), pixels)
+
+
+def _add_sphere_clipped(image, corner, half: int, w, r, mu, m_inv, offs) -> None:
+    """One sphere whose window the detector's edge cuts."""
+    c0, r0 = int(corner[0]), int(corner[1])
+    c1, r1 = c0 + 2 * half + 1, r0 + 2 * half + 1
+    cc0, rr0, cc1, rr1 = max(c0, 0), max(r0, 0), min(c1, image.shape[1]), min(r1, image.shape[0])
+    if cc0 >= cc1 or rr0 >= rr1:
+        return
+    u = (np.arange(cc0, cc1)[:, None] + offs).reshape(-1)
+    v = (np.arange(rr0, rr1)[:, None] + offs).reshape(-1)
+    image[rr0:rr1, cc0:cc1] += mu * _bin(_chords(_sphere_rays(u, v, m_inv, w), w, r), offs.size)
 
 
 def add_ring(
@@ -142,6 +209,11 @@ def add_cylinder(
     """
     src, d = rays if rays is not None else pixel_rays(view)
     p0, p1 = np.asarray(start_mm, float), np.asarray(end_mm, float)
+    cube = _box_corners(np.zeros(3), radius_mm * np.eye(3))
+    win = _window(view, np.concatenate([p0 + cube, p1 + cube]))
+    if win is None:
+        return
+    image, d = image[win], d[win]
     length = float(np.linalg.norm(p1 - p0))
     a = (p1 - p0) / length
     w = src - p0
@@ -199,6 +271,10 @@ def add_box(
     """
     src, d = rays if rays is not None else pixel_rays(view)
     r = np.asarray(carm_from_box_rotation, dtype=np.float64)
+    win = _window(view, _box_corners(np.asarray(centre_mm, dtype=np.float64), r * np.asarray(half_size_mm, dtype=np.float64)[None, :]))
+    if win is None:
+        return
+    image, d = image[win], d[win]
     o = r.T @ (src - np.asarray(centre_mm, dtype=np.float64))
     db = d @ r
     lo = np.full(d.shape[:-1], -np.inf)
