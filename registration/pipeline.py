@@ -436,11 +436,18 @@ def _recover_predicted(image: NDArray[np.uint8], video: VideoDetections, reg: Dr
     if joint:
         # Markers identified in two views whose fit did not converge (a steep view's crowded BBs): where their BBs put
         # them, their tags are looked for too, named by their code alone (no place vouches for an unsettled pose).
-        guessed = predict_missing_tags(more, locator=locator, camera=camera, poses=poses, marker_set=marker_set, carm_from_drill=reg.carm_from_drill,
-                                       unsettled=True)
+        # With the constellation's mirror open, where either solution puts them: twin seed 27002 (inlet+outlet, first
+        # frame), on marker 3 alone (one view, 47 deg off, its mirror 1 deg), marker 7's gloved tag lay where the mirror
+        # puts it and the registration put it out of the frame.
+        drills = (reg.carm_from_drill,) if mirror is None else (reg.carm_from_drill, mirror)
+        guessed, unsettled_places = {}, {}
+        for drill in drills:
+            guessed = _merged(guessed, predict_missing_tags(more, locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                                            carm_from_drill=drill, unsettled=True))
+            unsettled_places = _merged(unsettled_places, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
+                                                                            carm_from_drill=drill, unsettled=True))
         if guessed:
-            around = _merged(settled, predict_tag_places(locator=locator, camera=camera, poses=poses, marker_set=marker_set,
-                                                         carm_from_drill=reg.carm_from_drill, unsettled=True))
+            around = _merged(settled, unsettled_places)
             more = locator.recover(image, more, guessed, reach_px=WEAK_REACH_PX if weak else 0.0, placed_px=around, by_place=False)
             expected = {**expected, **guessed}
     if joint and search:
