@@ -4,6 +4,7 @@ as the twin's anatomy: one view with a ray through every 2nd pixel (the twin's d
 Run: .venv/bin/python benchmarks/sim_scene.py
 """
 
+import dataclasses
 import sys
 import tempfile
 import time
@@ -23,8 +24,30 @@ def main() -> None:
             assert cli(["sim", "scene", "--seed", str(seed), "--markers", "5", "--views", "inlet,outlet", "--out", d]) == 0
             times.append(time.perf_counter() - t)
     figures = [figure("sim scene 5 markers 2 views (median of 3)", sorted(times)[1], "s", 10.0)]
+    figures += shot_render()
     figures += ct_anatomy_render()
     report("sim_scene", figures, note="reference: the issue's bar for the scene; every pixel's ray for the CT anatomy's DRR")
+
+
+def shot_render() -> list[dict]:
+    """One fluoroscopy shot of the twin (median of 5, K-wire in): the clean pelvis, and every degradation but the
+    CT anatomy (low dose, hardware, collimator, image-intensifier distortion, surgeon-placed markers)."""
+    import numpy as np
+
+    from drillnav.drivers.sim.degradations import Degradations
+    from drillnav.drivers.sim.scene import make_scene, render_fluoro
+
+    out = []
+    for label, degradations in (("clean", Degradations()), ("every degradation but the CT", dataclasses.replace(Degradations.parse("all"), ct_anatomy=False))):
+        scene = make_scene(seed=2, views="ap,lateral", render=False, degradations=degradations)
+        rng = np.random.default_rng(0)
+        runs = []
+        for k in range(5):
+            t = time.perf_counter()
+            render_fluoro(scene, ("ap", "lateral")[k % 2], rng, carm_from_drill=scene.carm_from_drill)
+            runs.append(time.perf_counter() - t)
+        out.append(figure(f"fluoroscopy shot, {label} (median of 5)", sorted(runs)[2], "s"))
+    return out
 
 
 def ct_anatomy_render() -> list[dict]:
