@@ -106,7 +106,8 @@ def add_spheres(
     """Add spheres by exact chord lengths in a window around each sphere's projection.
 
     Spheres whose windows lie inside the detector and have one size are computed together (a ring is a thousand
-    of them); their chords are added in the spheres' order, as one at a time would add them.
+    of them), their chords added in the spheres' order; those the detector's edge cuts, one at a time. A pixel sums
+    the same chords as one sphere at a time would, in another order only across those groups (equal to rounding).
     """
     centres = np.asarray(centres_mm, float).reshape(-1, 3)
     radii = np.broadcast_to(np.asarray(radii_mm, float), (centres.shape[0],))
@@ -147,8 +148,10 @@ def _chords(d: NDArray[np.float64], w: NDArray[np.float64], r: NDArray[np.float6
     return 2.0 * np.sqrt(np.maximum(np.asarray(r)[..., None, None] ** 2 - dist2, 0.0))
 
 
-def _add_spheres_inside(image, corner, half: int, w, r, mu, m_inv, offs) -> None:
-    """K spheres whose (2 half + 1)-pixel windows at ``corner`` (K, 2) lie inside the detector."""
+def _add_spheres_inside(image: NDArray[np.float64], corner: NDArray[np.int64], half: int, w: NDArray[np.float64], r: NDArray[np.float64],
+                        mu: NDArray[np.float64], m_inv: NDArray[np.float64], offs: NDArray[np.float64]) -> None:
+    """K spheres whose (2 half + 1)-pixel windows at ``corner`` (K, 2: column, row) lie inside the detector: centres
+    ``w`` (K, 3) from the source, radii ``r`` (K,), attenuations ``mu`` (K,); ``offs`` (s,) the sub-pixel offsets."""
     n, s = 2 * half + 1, offs.size
     steps = (np.arange(n)[:, None] + offs).reshape(-1)
     u = corner[:, 0:1] + steps
@@ -159,8 +162,10 @@ def _add_spheres_inside(image, corner, half: int, w, r, mu, m_inv, offs) -> None
     np.add.at(image, (np.broadcast_to(rows, pixels.shape), np.broadcast_to(cols, pixels.shape)), pixels)
 
 
-def _add_sphere_clipped(image, corner, half: int, w, r, mu, m_inv, offs) -> None:
-    """One sphere whose window the detector's edge cuts."""
+def _add_sphere_clipped(image: NDArray[np.float64], corner: NDArray[np.int64], half: int, w: NDArray[np.float64], r: float, mu: float,
+                        m_inv: NDArray[np.float64], offs: NDArray[np.float64]) -> None:
+    """One sphere whose window (``corner`` (2,): column, row) the detector's edge cuts (arguments as
+    :func:`_add_spheres_inside`, one sphere's)."""
     c0, r0 = int(corner[0]), int(corner[1])
     c1, r1 = c0 + 2 * half + 1, r0 + 2 * half + 1
     cc0, rr0, cc1, rr1 = max(c0, 0), max(r0, 0), min(c1, image.shape[1]), min(r1, image.shape[0])
