@@ -61,6 +61,8 @@ CENTRE_AGREEMENT_PX = 8.0
 # more 7 were over 1 px off, 2 over 2 px, 4.0 px at most; of 8 under 0.8, 5 were over 2 px and one 17 px.
 LONE_MIN_CORRELATION = 0.85
 LONE_SIGMA_PX = 2.5
+# Where neither half is found along the predicted line, the line turned about the ring's centre by these (deg).
+TURN_SEARCH_DEG = (-6.0, -4.0, -2.0, 2.0, 4.0, 6.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -137,8 +139,41 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
     half_wid = float(np.max(np.abs((ring_px - centre) @ normal)))
     if half_len <= 0 or half_wid > EDGE_ON_STROKE_RATIO * half_len:
         return ()
-    rows, cols = image_log.shape
     reach = half_wid + 0.5 * float(np.max(design.bb_diameters_mm)) * half_len / design.ring_radius_mm + 3.0
+    image = np.ascontiguousarray(image_log, dtype=np.float32)
+    out = [st for st, _ in _halves(image, view, carm_from_marker, design, ring_mm, ring_px, centre, along, half_len, reach, search_px)]
+    judged = _judged(out, view, carm_from_marker, design, normal, lone_half=lone_half)
+    if judged:
+        return judged
+    # Nothing taken along the predicted line: a pose a few degrees askew turns the stroke in the image, so that its two
+    # halves lie apart across that line, or each half's profile, averaged along a line turned from it, smears. Twin
+    # seed 28801 (flat markers, AP+lateral, first pose): marker 5, placed 1.3 mm and 5.6 deg off by the AP view (three
+    # BBs, its ring outside the field) and the camera, its stroke turned 3.9 deg from the predicted one; the halves
+    # matched at 0.96 each, 8.25 px apart. The line is turned a few degrees either way about the ring's centre; two
+    # halves on one line there (their shifts within HALF_AGREEMENT_PX) are taken, at the turn that matches best.
+    best: tuple[RingStroke, ...] = ()
+    for deg in TURN_SEARCH_DEG:
+        a = np.radians(deg)
+        turned = np.array([np.cos(a) * along[0] - np.sin(a) * along[1], np.sin(a) * along[0] + np.cos(a) * along[1]])
+        found = _halves(image, view, carm_from_marker, design, ring_mm, ring_px, centre, turned, half_len, reach, search_px, template_along=along)
+        # Both halves on one line: the same shift from the turned line.
+        if len(found) == 2 and abs(found[0][1] - found[1][1]) <= HALF_AGREEMENT_PX:
+            if not best or min(h.correlation for h, _ in found) > min(h.correlation for h in best):
+                best = tuple(h for h, _ in found)
+    return best
+
+
+def _halves(image: NDArray[np.float32], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, ring_mm: NDArray[np.float64],
+            ring_px: NDArray[np.float64], centre: NDArray[np.float64], along: NDArray[np.float64], half_len: float, reach: float, search_px: float,
+            *, template_along: NDArray[np.float64] | None = None) -> list[tuple[RingStroke, float]]:
+    """Each half of the stroke found across the line through ``centre`` (2,) px along ``along`` (2,), matched
+    unambiguously (:data:`MIN_CORRELATION`, :data:`SECOND_PEAK_RATIO`) within ``search_px`` of it, and its shift (px)
+    from that line. The predicted profile is taken along ``template_along`` (the predicted stroke's own direction;
+    default ``along``)."""
+    rows, cols = image.shape
+    normal = np.array([-along[1], along[0]])
+    tmpl_along = along if template_along is None else template_along
+    tmpl_normal = np.array([-tmpl_along[1], tmpl_along[0]])
     steps = int(round(search_px / STEP_PX))
     # The predicted profile spans the stroke and as much again either side, where it is dark: a bright band beside the
     # stroke must count against a match there, not for it; matched on the stroke's own width, seed 11401's lateral
@@ -146,7 +181,6 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
     span = (1.0 + TEMPLATE_MARGIN) * reach
     s_tmpl = np.arange(-span, span + 1e-9, STEP_PX)
     s_data = np.arange(-span - steps * STEP_PX, span + steps * STEP_PX + 1e-9, STEP_PX)[: len(s_tmpl) + 2 * steps]
-    image = np.ascontiguousarray(image_log, dtype=np.float32)
     out = []
     for sign in (-1.0, 1.0):
         # Each half, its ends left out (where the wire turns across the line).
@@ -157,7 +191,8 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
         if np.any(corners < 1) or np.any(corners[:, 0] > cols - 2) or np.any(corners[:, 1] > rows - 2):
             continue  # this half lies partly outside the image
         # The predicted profile, smooth along the stroke: every third row of the sampled grid is enough.
-        tmpl = _profile_template(view, carm_from_marker, design, grid_t[::TEMPLATE_EVERY] + s_tmpl[None, :, None] * normal).mean(axis=0)
+        tmpl_t = centre[None, None] + t[::TEMPLATE_EVERY, None, None] * tmpl_along
+        tmpl = _profile_template(view, carm_from_marker, design, tmpl_t + s_tmpl[None, :, None] * tmpl_normal).mean(axis=0)
         samples = cv2.remap(image, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32), cv2.INTER_LINEAR)
         data = samples.astype(np.float64).mean(axis=0)
         ncc = _ncc(data, tmpl, steps)
@@ -171,11 +206,21 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
         a, b, c = ncc[k - 1], ncc[k], ncc[k + 1]
         frac = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
         shift = (k - steps + float(np.clip(frac, -0.5, 0.5))) * STEP_PX
-        # The half's middle, as a point of the marker: half way from the ring's centre to that end of the stroke.
-        anchor = _anchor_mm(ring_mm, ring_px, sign * along, design)
-        predicted = float(normal @ view.project(apply(carm_from_marker, anchor[None]))[0])
-        out.append(RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=predicted + shift, predicted_px=predicted, correlation=best,
-                              sigma_px=STROKE_SIGMA_PX))
+        # The half's middle, as a point of the marker: half way from the ring's centre to that end of the stroke. Across
+        # a turned line, the point found is the line's at the half's middle moved by the shift: measured along the
+        # turned line's normal, as is the anchor's prediction.
+        anchor = _anchor_mm(ring_mm, ring_px, sign * tmpl_along, design)
+        anchor_px = view.project(apply(carm_from_marker, anchor[None]))[0]
+        predicted = float(normal @ anchor_px)
+        on_line = float(normal @ centre)
+        out.append((RingStroke(anchor_mm=anchor, normal=normal.copy(), offset_px=on_line + shift if template_along is not None else predicted + shift,
+                               predicted_px=predicted, correlation=best, sigma_px=STROKE_SIGMA_PX), shift))
+    return out
+
+
+def _judged(out: list[RingStroke], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, normal: NDArray[np.float64], *,
+            lone_half: bool) -> tuple[RingStroke, ...]:
+    """The halves found along the predicted line, judged together (see :func:`measure_ring_stroke`)."""
     # Two halves that agree, each at its own noise. Two that disagree a little give the ring's centre, their middle
     # (a turn of the pose about the beam parts the halves, and moves the centre not at all), at a noise that counts
     # the disagreement; farther apart, one matched something else (a neighbour's stroke, the other side of a ring's

@@ -135,3 +135,30 @@ def test_a_slope_under_the_stroke_changes_nothing():
     assert len(again) == 2
     for a, b in zip(both, again):
         assert abs(a.offset_px - b.offset_px) < 1e-3 and abs(a.correlation - b.correlation) < 1e-4, (a, b)
+
+
+def test_a_stroke_turned_in_the_image_from_a_pose_askew_is_found_along_a_turned_line(monkeypatch):
+    """A pose a few degrees askew about the beam turns the predicted stroke in the image: its two halves lie apart across
+    the predicted line (twin seed 28801's marker 5: 3.9 deg, 8.25 px apart) and neither agreeing halves nor a centre
+    were taken. Along a line turned about the ring's centre (``TURN_SEARCH_DEG``) both halves are found, and each row
+    they give agrees with the marker's true pose."""
+    taken = 0
+    for seed in (8, 9, 15):
+        scene, image, i, truth, _ = _paired_stroke(seed)
+        lateral = scene.views["lateral"]
+        design = scene.marker_set.by_id(i)
+        centre = apply(truth, np.asarray(design.ring_center_mm, dtype=np.float64)[None])[0]
+        beam = (centre - lateral.source_position_mm) / np.linalg.norm(centre - lateral.source_position_mm)
+        turn = from_rotvec(np.radians(5.0) * beam)
+        turn[:3, 3] = centre - turn[:3, :3] @ centre
+        askew = turn @ truth
+        found = measure_ring_stroke(image, lateral, askew, design)
+        assert len(found) == 2, (seed, i, found)
+        for stroke in found:
+            true_px = float(stroke.normal @ lateral.project(apply(truth, stroke.anchor_mm[None]))[0])
+            assert abs(stroke.offset_px - stroke.predicted_px) > 2.0, "the turn put each half off its prediction"
+            assert abs(stroke.offset_px - true_px) < 1.5 * stroke.sigma_px, (seed, i, stroke.offset_px - true_px)
+        with monkeypatch.context() as m:
+            m.setattr(edge_on_ring, "TURN_SEARCH_DEG", ())
+            taken += len(measure_ring_stroke(image, lateral, askew, design)) == 2
+    assert taken == 0, "along the predicted line two halves were taken: the turn no longer tests the turned line"

@@ -210,11 +210,12 @@ def flat_marker_scene(seed: int):
 
 def edge_on_rows_as_first_taken(monkeypatch) -> None:
     """Edge-on rings' rows as they were first taken, when the scenes of some tests were found: strokes as two
-    agreeing halves only (no half alone, no centre of two that disagree), no marker that a view shows by nothing
-    looked for turned, and no ambiguous roll settled by the stroke's profile. There, the later rows alone place the
+    agreeing halves only (no half alone, no centre of two that disagree, none along a line turned from the predicted
+    one), no marker that a view shows by nothing looked for turned, and no ambiguous roll settled by the stroke's profile. There, the later rows alone place the
     markers well enough that the scene no longer shows what the test checks."""
     from drillnav.registration import edge_on_ring, video_fluoro
 
     monkeypatch.setattr(edge_on_ring, "LONE_MIN_CORRELATION", 2.0)  # no correlation reaches it
     monkeypatch.setattr(edge_on_ring, "CENTRE_AGREEMENT_PX", edge_on_ring.HALF_AGREEMENT_PX)
+    monkeypatch.setattr(edge_on_ring, "TURN_SEARCH_DEG", ())
     monkeypatch.setattr(video_fluoro, "TURNED_STROKE_CORRELATION", 2.0)  # neither found turned nor settled by the stroke
