@@ -143,10 +143,11 @@ def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_fr
     image = np.ascontiguousarray(image_log, dtype=np.float32)
     out = [st for st, _ in _halves(image, view, carm_from_marker, design, ring_mm, ring_px, centre, along, half_len, reach, search_px)]
     judged = _judged(out, view, carm_from_marker, design, normal, lone_half=lone_half)
-    if judged:
+    if judged or not out:
         return judged
-    # Nothing taken along the predicted line: a pose a few degrees askew turns the stroke in the image, so that its two
-    # halves lie apart across that line, or each half's profile, averaged along a line turned from it, smears. Twin
+    # A half found along the predicted line but nothing taken: a pose a few degrees askew turns the stroke in the image,
+    # so that its two halves lie apart across that line, or one half's profile, averaged along a line turned from it,
+    # smears. (Where no half matches at all, nothing stroke-like lies there: no turned line is tried.) Twin
     # seed 28801 (flat markers, AP+lateral, first pose): marker 5, placed 1.3 mm and 5.6 deg off by the AP view (three
     # BBs, its ring outside the field) and the camera, its stroke turned 3.9 deg from the predicted one; the halves
     # matched at 0.96 each, 8.25 px apart. The line is turned a few degrees either way about the ring's centre; two
