@@ -578,7 +578,8 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
                                   used_before: int) -> tuple[VideoDetections, DrillRegistration] | None:
     """The joint registration of ``video`` with the tags whose code reads only in part, named among the markers posed
     in fluoroscopy (``every``: loose hypotheses included) that it misses (:meth:`.VideoMarkerLocator.name_among_posed`),
-    when it bears them out: (detections with the named tags it used, registration), or None.
+    and those of markers fluoroscopy identified without posing them whose code identifies them dictionary-wide, when
+    it bears them out: (detections with the named tags it used, registration), or None.
 
     Borne out: the registration uses at least two markers (one, where a named marker it uses is
     ``identified_by_code``: its code identifies it dictionary-wide; or, in a frame otherwise refused
@@ -596,6 +597,17 @@ def _registration_with_named_tags(image: NDArray[np.uint8], video: VideoDetectio
     # its code identifies it dictionary-wide.
     wanted = {p.marker_id for p in _missing(video, every, locator)}
     named = locator.name_among_posed(image, video, wanted)
+    # A marker fluoroscopy identified but whose fit did not converge (one view: a mirror image or a residual over the
+    # limit) has no pose to name its tag among; its tag is named only where its code identifies it dictionary-wide,
+    # and the joint solve then fixes its normal and layout from the camera and its place from its BBs. Looked for
+    # after the posed markers' names (whose outlines it does not take), so that it never turns one of them. Twin
+    # seed 28402 (AP+lateral, first frame): the camera read no whole tag; tag 46 named among the posed and tag 20,
+    # cut by the frame's edge, its marker identified in the lateral view alone, registered 0.3 deg off, refused before.
+    unposed = {p.marker_id for p in every if not p.converged and not p.loose and p.observations and p.marker_id in locator.marker_ids}
+    unposed -= wanted | {m.marker_id for m in video.markers}
+    if unposed:
+        by_code = locator.name_among_posed(image, with_markers(video, named), unposed)
+        named = tuple(sorted(named + tuple(m for m in by_code if m.identified_by_code), key=lambda m: m.marker_id))
     if not named:
         return None
     trial = with_markers(video, named)

@@ -11,12 +11,10 @@ either solution puts them, as it does for the converged markers' tags (``pipelin
 import sys
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from twin_images import study_shot  # noqa: E402  (tests/: the study's shot of a seed, pair and drill pose)
+from twin_images import axis_error_at_entry, study_shot  # noqa: E402  (tests/: the study's shot of a seed, pair and drill pose)
 
-from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA  # noqa: E402
 from drillnav.registration.video_fluoro import predicted_axis_error, register_video_to_fluoro  # noqa: E402
 
 SEED, PAIR, POSE = 27002, "inlet+outlet", 0
@@ -26,12 +24,9 @@ def test_an_unconverged_markers_tag_is_recovered_where_the_mirror_puts_it():
     import accuracy
 
     scene, poses, carm_from_drill, video, image = study_shot(SEED, PAIR, POSE)
-    entry = scene.corridor_entry_carm_mm
-    true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(carm_from_drill)
 
     def off_mm(reg) -> float:
-        axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
-        return float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
+        return axis_error_at_entry(scene, carm_from_drill, reg)[0]
 
     unconverged = next(p for p in poses if p.marker_id == 7)
     assert not unconverged.converged and len({id(o[0]) for o in unconverged.observations}) == 2
@@ -42,6 +37,6 @@ def test_an_unconverged_markers_tag_is_recovered_where_the_mirror_puts_it():
     found, reg = accuracy._register(scene, image, video, poses, joint=True)
     assert next(m for m in found.markers if m.marker_id == 7).recovered
     assert set(reg.used_ids) == {3, 7}, reg.used_ids
-    pe = predicted_axis_error(found, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
+    pe = predicted_axis_error(found, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm)
     assert off_mm(reg) < 2.5 and off_mm(reg) <= pe.position90_mm, (off_mm(reg), pe.position90_mm)
     assert pe.reliable

@@ -178,7 +178,7 @@ def one_view_registration(seed: int, pair: str, pose_index: int, view: str | Non
     axis's error there in mm, its angle error in deg)."""
     import accuracy
 
-    from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA, render_fluoro
+    from drillnav.drivers.sim.scene import render_fluoro
     from drillnav.registration.fluoro_markers import detect_in_view
     from drillnav.registration.marker_pose import register_markers
     from drillnav.registration.video_fluoro import predicted_axis_error
@@ -190,12 +190,20 @@ def one_view_registration(seed: int, pair: str, pose_index: int, view: str | Non
     poses = tuple(register_markers([dets[view]], [scene.views[view]], scene.marker_set))
     pose, video, image = accuracy.camera_shots(scene, seed=seed, k=k, poses=pose_index + 1)[pose_index]
     video, reg = accuracy._register(scene, image, video, poses, joint=True)
+    off_mm, off_deg = axis_error_at_entry(scene, pose, reg)
+    pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm)
+    return scene, view, reg, pe, off_mm, off_deg
+
+
+def axis_error_at_entry(scene, carm_from_drill: np.ndarray, reg) -> tuple[float, float]:
+    """The registered axis's error against the true one of the shot taken at ``carm_from_drill``, as the study scores
+    it: (mm at the corridor's entry, deg)."""
+    from drillnav.drivers.sim.scene import TRUE_DRILL_AXIS_CAMERA
+
     entry = scene.corridor_entry_carm_mm
     axis = scene.calibrated_axis_drill.transformed(reg.carm_from_drill)
-    true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(pose)
-    off_mm = float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry)))
-    pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=entry)
-    return scene, view, reg, pe, off_mm, axis.angle_deg(true_axis)
+    true_axis = TRUE_DRILL_AXIS_CAMERA.transformed(carm_from_drill)
+    return float(np.linalg.norm(axis.closest_point(entry) - true_axis.closest_point(entry))), axis.angle_deg(true_axis)
 
 
 def flat_marker_scene(seed: int):
