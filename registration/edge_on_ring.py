@@ -26,7 +26,7 @@ from .carm import CArmView
 from .markers import MarkerDesign
 from .transforms import apply
 
-__all__ = ["RingStroke", "measure_ring_stroke", "EDGE_ON_STROKE_RATIO", "STROKE_SIGMA_PX"]
+__all__ = ["RingStroke", "measure_ring_stroke", "ncc_with_trend", "EDGE_ON_STROKE_RATIO", "STROKE_SIGMA_PX"]
 
 # A ring whose projected ellipse is flatter than this (minor over major half-axis) is measured as a stroke. Flatter
 # than fluoro_markers' EDGE_ON_MINOR_RATIO (0.12), the detector gives up on its pattern; the stroke is still sharp.
@@ -106,8 +106,9 @@ def _profile_template(view: CArmView, carm_from_marker: NDArray[np.float64], des
     return out.reshape(grid_px.shape[:2])
 
 
-def _ncc(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> NDArray[np.float64]:
-    """Normalised correlation of ``tmpl`` (W,) with every window of ``data`` (W + 2 steps,), shifts -steps..steps, each
+def ncc_with_trend(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> NDArray[np.float64]:
+    """Normalised correlation of ``tmpl`` (W,) with every window of ``data`` (..., W + 2 steps), shifts -steps..steps (the
+    result (..., 2 steps + 1): one row per profile where ``data`` holds several), each
     with its straight-line trend across the window taken out: the anatomy's slope under a stroke (a bone's edge, the
     soft tissue thickening toward the back) is no part of the ring's shadow. With the mean alone taken out, 37 of 80
     edge-on rings in the flat-marker twin's lateral views (17 seeds, from poses 3 mm off) had a half under
@@ -117,9 +118,9 @@ def _ncc(data: NDArray[np.float64], tmpl: NDArray[np.float64], steps: int) -> ND
     basis = np.stack([np.full(w, 1.0 / np.sqrt(w)), x / np.linalg.norm(x)])  # (2, W) orthonormal: mean and slope
     t = tmpl - (basis @ tmpl) @ basis
     tn = np.linalg.norm(t)
-    win = np.lib.stride_tricks.sliding_window_view(data, w)[: 2 * steps + 1]
+    win = np.lib.stride_tricks.sliding_window_view(data, w, axis=-1)[..., : 2 * steps + 1, :]
     win = win - (win @ basis.T) @ basis
-    return (win @ t) / np.maximum(np.linalg.norm(win, axis=1) * tn, 1e-12)
+    return (win @ t) / np.maximum(np.linalg.norm(win, axis=-1) * tn, 1e-12)
 
 
 def measure_ring_stroke(image_log: NDArray[np.floating], view: CArmView, carm_from_marker: NDArray[np.float64], design: MarkerDesign, *,
@@ -196,7 +197,7 @@ def _halves(image: NDArray[np.float32], view: CArmView, carm_from_marker: NDArra
         tmpl = _profile_template(view, carm_from_marker, design, tmpl_t + s_tmpl[None, :, None] * tmpl_normal).mean(axis=0)
         samples = cv2.remap(image, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32), cv2.INTER_LINEAR)
         data = samples.astype(np.float64).mean(axis=0)
-        ncc = _ncc(data, tmpl, steps)
+        ncc = ncc_with_trend(data, tmpl, steps)
         k = int(np.argmax(ncc))
         best = float(ncc[k])
         shifts = (np.arange(len(ncc)) - steps) * STEP_PX

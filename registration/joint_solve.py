@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
@@ -202,6 +203,7 @@ def joint_solve(
     give_up_above_chi2: float | None = None,
     strokes: dict[int, tuple] | None = None,
     rolls: dict[int, tuple] | None = None,
+    outlines: dict[int, tuple] | None = None,
     refine: bool = True,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
@@ -246,6 +248,11 @@ def joint_solve(
     ``rolls``: {marker id: ((CArmView, near (3,) mm and far (3,) mm in the marker frame, normal (2,), apart px, sigma px), ...)}:
     where an edge-on marker's shadow shows it turned about its own line (:func:`.edge_on_roll.measure_ring_roll`),
     how far apart across the line the two points' images lie, with its own noise; like strokes, they reject no marker.
+    ``outlines``: {marker id: ((CArmView, anchors (K, 3) mm in the marker frame, normals (K, 2), offsets (K,) px,
+    sigmas (K,) px), ...)}: where an open ring's wire lies across its ellipse (:func:`.ring_outline.measure_ring_outline`),
+    each anchor's image along its normal, with its own noise; each view's rows join that marker's BBs in the view (at
+    least 3), whose shared shift and scale they share (``bb_common_sigma_px``, ``bb_scale_sigma_px``), and count in
+    its chi.
     ``refine`` False: the plain fit's solution at the starting poses as given, no step taken (its chi-square is how
     well those poses fit: a mirror image that the refinement would leave for the best solution).
     """
@@ -278,7 +285,7 @@ def joint_solve(
     corner_slide = {i: v for i, v in corner_slide.items() if np.any(v != 0)}
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}))
+            crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}), dict(outlines or {}))
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
@@ -598,6 +605,54 @@ def _trim(observations, carm_from_marker, max_px: float, distortion: tuple = ())
     return tuple(out)
 
 
+def _whitening_with_outlines(groups_px: list[NDArray[np.float64]], extra_px: list[NDArray[np.float64]] | None, outline_px: dict,
+                             sigma_px: float, shift_px: float, scale_px: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Whitening of the BB groups (:func:`_group_whitening`) with ring outline rows joined to some of them.
+
+    ``groups_px``: each group's BB images (N, 2); ``extra_px``: per group (N,) extra noise or None; ``outline_px``:
+    {group index: (anchor images (K, 2) px, normals (K, 2), sigmas (K,) px)}. The vector whitened is every group's BB
+    coordinates in group order (x0, y0, x1, ...), then every outline row in group order. An outline row errs by its
+    own sigma, by the group's shared shift along its normal, and by the group's shared scale (about the BBs' centre,
+    ``scale_px`` at their mean radius) along its normal: a group with outline rows is whitened by the inverse
+    Cholesky factor of that covariance (noise 1 per row). Returns ``W`` (R, R), the noise (R,) of each row of
+    ``W @ e``, and each row's group (R,); the rows come group by group.
+    """
+    pts_all = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in groups_px]
+    n_bb = 2 * sum(len(p) for p in pts_all)
+    size = n_bb + sum(len(v[2]) for v in outline_px.values())
+    w = np.zeros((size, size))
+    noise: list[float] = []
+    row_group: list[int] = []
+    r, cb, co = 0, 0, n_bb
+    for g, pts in enumerate(pts_all):
+        n = len(pts)
+        cols = list(range(cb, cb + 2 * n))
+        cb += 2 * n
+        extra = None if extra_px is None else np.asarray(extra_px[g], dtype=np.float64).reshape(-1)
+        if g not in outline_px:
+            block, nz, _ = _group_whitening([pts], sigma_px, shift_px, scale_px, None if extra is None else [extra])
+        else:
+            a_px, nrm, sg = (np.asarray(v, dtype=np.float64) for v in outline_px[g])
+            k = len(sg)
+            cols += list(range(co, co + k))
+            co += k
+            centre = pts.mean(axis=0)
+            ex = np.zeros(n) if extra is None else extra
+            ux = np.concatenate([np.tile([1.0, 0.0], n), nrm[:, 0]])
+            uy = np.concatenate([np.tile([0.0, 1.0], n), nrm[:, 1]])
+            cov = np.diag(np.concatenate([sigma_px**2 + np.repeat(ex**2, 2), sg**2])) + shift_px**2 * (np.outer(ux, ux) + np.outer(uy, uy))
+            radius = float(np.mean(np.linalg.norm(pts - centre, axis=1)))
+            if n >= 3 and radius > 0:
+                rel = np.concatenate([(pts - centre).ravel(), np.sum(nrm * (a_px - centre), axis=1)])
+                cov += (scale_px / radius) ** 2 * np.outer(rel, rel)
+            block, nz = np.linalg.inv(np.linalg.cholesky(cov)), np.ones(2 * n + k)
+        w[r : r + len(cols), cols] = block
+        noise += list(nz)
+        row_group += [g] * len(cols)
+        r += len(cols)
+    return w, np.asarray(noise), np.asarray(row_group, dtype=np.int64)
+
+
 def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shift_px: float, scale_px: float,
                      extra_px: list[NDArray[np.float64]] | None = None,
                      slide_px: list[NDArray[np.float64]] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
@@ -652,7 +707,7 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], corner_slide: dict[int, NDArray[np.float64]], anchors: dict, strokes: dict, rolls: dict, *, loss: str,
+           corner_extra: dict[int, float], corner_slide: dict[int, NDArray[np.float64]], anchors: dict, strokes: dict, rolls: dict, outlines: dict, *, loss: str,
            max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
@@ -667,9 +722,10 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     pivots = poses0[:, :3, 3].copy()
     pivot_d = pivots[:m].mean(axis=0)  # the seen markers' centroid
     # Fluoroscopy rows: one block per (marker, view), projected with the view's 3x4 matrix.
-    f_obj, f_img, f_marker, f_p = [], [], [], []
+    f_obj, f_img, f_marker, f_p, f_keys = [], [], [], [], []
     for k, i in enumerate(every_id):
         for view, obj, img in observations[i]:
+            f_keys.append((k, view))
             f_obj.append(np.asarray(obj, dtype=np.float64))
             f_img.append(np.asarray(img, dtype=np.float64))
             f_marker.append(np.full(len(obj), k))
@@ -695,7 +751,37 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     if crowding:
         ratios = _crowding({i: observations[i] for i in every_id}, markers0, marker_set)
         extra = [crowded_bb_sigma_px(r) for i in every_id for r in ratios[i]]
-    wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, bb_scale_px, extra)
+    # Open rings' outlines (the camera's markers only), each view's rows joined to the marker's BBs there.
+    o_rows = {}
+    for k, i in enumerate(ids):
+        for view, a, nv, o, sg in outlines.get(i, ()):
+            g = next((j for j, (kk, v) in enumerate(f_keys) if kk == k and v is view), None)
+            if g is not None and len(f_img[g]) >= 3:
+                a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
+                o_rows[g] = (a, np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1),
+                             np.asarray(sg, dtype=np.float64).reshape(-1), view.project(apply(markers0[i], a)))
+    n_o = sum(len(r[2]) for r in o_rows.values())
+    if n_o:
+        o_sigma = np.concatenate([o_rows[g][3] for g in sorted(o_rows)])
+        if len(o_sigma) != n_o or not np.all(o_sigma > 0) or not np.all(np.isfinite(o_sigma)):
+            raise ValueError(f"each outline row needs one finite sigma > 0 px, got {o_sigma}")
+        o_obj = np.concatenate([o_rows[g][0] for g in sorted(o_rows)])
+        o_nrm = np.concatenate([o_rows[g][1] for g in sorted(o_rows)])
+        o_off = np.concatenate([o_rows[g][2] for g in sorted(o_rows)])
+        o_mk = np.concatenate([np.full(len(o_rows[g][2]), f_keys[g][0]) for g in sorted(o_rows)])
+        o_views = [f_keys[g][1] for g in sorted(o_rows) for _ in range(len(o_rows[g][2]))]
+        o_pa = np.stack([v.projection_matrix for v in o_views])
+        o_dv = np.array([next((j for j, dv in enumerate(dist_views) if dv is v), -1) for v in o_views])
+        o_center = np.stack([v.center_px for v in o_views])
+        o_corner_r = np.array([v.corner_radius_px for v in o_views])
+        o_has = o_dv >= 0
+        wf, f_noise, f_row_group = _whitening_with_outlines(f_img, extra, {g: (r[4], r[1], r[3]) for g, r in o_rows.items()}, fluoro_sigma_px,
+                                                            bb_common_px, bb_scale_px)
+        f_row_mk = np.array([f_keys[g][0] for g in f_row_group], dtype=np.int64)
+        wf_sparse = csr_matrix(wf)
+    else:
+        wf, f_noise, _ = _group_whitening(f_img, fluoro_sigma_px, bb_common_px, bb_scale_px, extra)
+        f_row_mk = np.repeat(f_mk, 2)
     # A corner left out as an outlier is NaN in ``corners_px``: its tag is whitened over the corners it keeps.
     c_keep = [np.all(np.isfinite(np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2)), axis=1) for i in ids]
     c_sel = np.nonzero(np.concatenate(c_keep))[0]  # of every tag's four corners, those used
@@ -744,7 +830,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         r_mk = np.zeros(0, dtype=np.int64)
     k0 = camera.camera_matrix
     fx0, fy0, cx0, cy0 = k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]
-    n_f, n_c = 2 * len(f_obj_a), 2 * len(c_obj)
+    n_f, n_c = len(f_noise), 2 * len(c_obj)
     n_par = 6 + 6 * ma + N_INTRINSICS + 2 * n_dv
     i_dist = 6 + 6 * ma + N_INTRINSICS
 
@@ -765,7 +851,12 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         if n_dv:
             coef = xs[:, i_dist:].reshape(n, n_dv, 2)[:, f_dv[f_has]]
             uv[:, f_has] += intensifier_shift_px(uv[:, f_has], f_center[f_has], f_corner_r[f_has][:, None], coef)
-        rf = np.einsum("ij,pj->pi", wf, (uv - f_img_a).reshape(n, -1)) / f_noise
+        raw = (uv - f_img_a).reshape(n, -1)
+        if n_o:
+            # Block diagonal up to the rows' order: applied as a sparse matrix.
+            rf = (wf_sparse @ np.concatenate([raw, outline_rows(xs, rot_m, t_m)], axis=1).T).T / f_noise
+        else:
+            rf = np.einsum("ij,pj->pi", wf, raw) / f_noise
         obj, mk = (c_obj_all, c_mk_all) if every_corner else (c_obj, c_mk)
         cc = np.einsum("pnij,nj->pni", rot_m[:, mk], obj) + t_m[:, mk]
         cd = np.einsum("pji,pnj->pni", rot_d, cc - t_d[:, None])  # drill_from_carm applied
@@ -793,16 +884,24 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
             rest.append((np.sum((uvr[:, :, 0] - uvr[:, :, 1]) * r_nrm, axis=-1) - r_apart) / r_sigma)
         return np.concatenate([*rest, prior], axis=1)
 
+    def along_normals(xs, rot_m, t_m, mk, obj, pa, has, dv, center, corner_r, nrm):
+        """Each anchor's image (its view's distortion applied where estimated) along its normal (P, K) px."""
+        n = xs.shape[0]
+        pts = np.einsum("pnij,nj->pni", rot_m[:, mk], obj) + t_m[:, mk]
+        hs = np.einsum("nij,pnj->pni", pa[:, :, :3], pts) + pa[:, :, 3]
+        uvs = hs[..., :2] / hs[..., 2:3]
+        if n_dv and np.any(has):
+            coef = xs[:, i_dist:].reshape(n, n_dv, 2)[:, dv[has]]
+            uvs[:, has] += intensifier_shift_px(uvs[:, has], center[has], corner_r[has][:, None], coef)
+        return np.sum(uvs * nrm, axis=-1)
+
     def stroke_rows(xs, rot_m, t_m):
         """Normalised residuals (P, n_s) of the ring strokes."""
-        n = xs.shape[0]
-        ps = np.einsum("pnij,nj->pni", rot_m[:, s_mk], s_obj) + t_m[:, s_mk]
-        hs = np.einsum("nij,pnj->pni", s_pa[:, :, :3], ps) + s_pa[:, :, 3]
-        uvs = hs[..., :2] / hs[..., 2:3]
-        if n_dv and np.any(s_has):
-            coef_s = xs[:, i_dist:].reshape(n, n_dv, 2)[:, s_dv[s_has]]
-            uvs[:, s_has] += intensifier_shift_px(uvs[:, s_has], s_center[s_has], s_corner_r[s_has][:, None], coef_s)
-        return (np.sum(uvs * s_nrm, axis=-1) - s_off) / s_sigma
+        return (along_normals(xs, rot_m, t_m, s_mk, s_obj, s_pa, s_has, s_dv, s_center, s_corner_r, s_nrm) - s_off) / s_sigma
+
+    def outline_rows(xs, rot_m, t_m):
+        """Residuals (P, n_o) px of the ring outlines, not normalised (their whitening is their BBs' group's)."""
+        return along_normals(xs, rot_m, t_m, o_mk, o_obj, o_pa, o_has, o_dv, o_center, o_corner_r, o_nrm) - o_off
 
     # The Jacobian is block sparse: a BB depends on its own marker's 6 parameters only, a corner on its
     # marker's, the drill's and the intrinsics. So the k-th parameter of every marker can be stepped at
@@ -810,7 +909,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     # batched call, whatever the number of markers (measured ~2 ms against ~30 ms for scipy's grouped
     # sparse differences, which evaluate the groups one call at a time).
     h = 1e-6
-    row_marker = np.concatenate([np.repeat(f_mk, 2), np.repeat(c_mk, 2), s_mk, r_mk, np.full(N_INTRINSICS + 2 * n_dv, -1)])
+    row_marker = np.concatenate([f_row_mk, np.repeat(c_mk, 2), s_mk, r_mk, np.full(N_INTRINSICS + 2 * n_dv, -1)])
     in_marker = np.nonzero(row_marker >= 0)[0]
     n_glob = N_INTRINSICS + 2 * n_dv  # intrinsics and the views' distortion: one column each
     steps = np.zeros((6 + n_glob + 6, n_par))
@@ -842,10 +941,10 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     res = sol.fun
     projected = residuals(sol.x[None], every_corner=True)[0]  # (4 m, 2)
     corner_proj = {i: projected[4 * k : 4 * k + 4] for k, i in enumerate(ids)}
-    rf, rc = res[:n_f].reshape(-1, 2), res[n_f : n_f + n_c].reshape(-1, 2)
+    rf, rc = res[:n_f], res[n_f : n_f + n_c].reshape(-1, 2)
     chi = {}
     for k, i in enumerate(ids):
-        both = np.concatenate([rf[f_mk == k].ravel(), rc[c_mk == k].ravel()])
+        both = np.concatenate([rf[f_row_mk == k], rc[c_mk == k].ravel()])
         chi[i] = float(np.sqrt(np.mean(both**2)))
     dof = max(1, len(res) - n_par)
     red = float(np.sum(res**2) / dof)
@@ -881,7 +980,7 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
         used_ids=tuple(ids),
         rejected_ids=(),
         marker_chi=chi,
-        fluoro_rms_px=float(np.sqrt(2.0 * np.mean((wf.T @ (res[:n_f] * f_noise)) ** 2))),
+        fluoro_rms_px=float(np.sqrt(2.0 * np.mean((np.linalg.solve(wf, res[:n_f] * f_noise)[: 2 * len(f_obj_a)] if n_o else wf.T @ (res[:n_f] * f_noise)) ** 2))),
         corner_rms_px=float(np.sqrt(2.0 * np.mean((wc.T @ (res[n_f : n_f + n_c] * c_noise)) ** 2))),
         reduced_chi2=red,
         chi2=float(np.sum(res**2)),

@@ -36,6 +36,7 @@ from .errors import DegenerateInput, DrillnavError, MarkersNotFound
 from .horn import absolute_orientation, absolute_orientation_batch
 from .edge_on_ring import RingStroke, measure_ring_stroke
 from .edge_on_roll import RingRoll, measure_ring_roll, rolled_about
+from .ring_outline import measure_ring_outline
 from .joint_solve import CORNER_SIGMA_PX, FOCAL_REL_SIGMA, JointSolution, joint_solve, project_distorted, square_misfit_noise_px
 from .line import Line3D
 from .marker_pose import MarkerPose, planar_candidates
@@ -258,6 +259,15 @@ def register_video_to_fluoro(
             sol, alternative = _settle_lone_marker_views(sol, solve, drill_from_marker(vids[i].camera_from_tag, marker_set.by_id(i).tag_center_mm))
         elif len(sol.used_ids) == 1 and len(every[sol.used_ids[0]].solutions) > 1:
             sol, alternative = _settle_lone_marker_mirror(sol, every[sol.used_ids[0]], solve)
+        if alternative is None and fit is None:
+            # An open ring's wire, all around it, measures its marker's scale in the view (its depth along the beam) where
+            # the BBs, within 15 mm of the centre, fix it least: measured at the solve's poses, solved again. Only where no
+            # mirror image is left open: measured around one solution's ellipse, the rows would judge the other on anchors
+            # it does not place there (twin seed 29102, flat markers, the AP view alone, second pose: a lone marker's
+            # open mirror closed, the axis 45.6 mm off under a 7.9 mm bound, flagged).
+            settled = sol
+            sol = _with_outlines(sol, every, solve, carm_from_marker, marker_set)
+            before_mirror = sol if before_mirror is settled else before_mirror
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
@@ -375,6 +385,78 @@ def _with_strokes(sol: JointSolution, every: dict[int, MarkerPose], solve: dict,
         solve["strokes"], solve["rolls"] = strokes, rolls
         sol = again
     return sol
+
+
+# How near another used marker's BB or wire an outline's anchor may lie (px beyond the BB's radius; from the wire).
+OUTLINE_CLEARANCE_PX = 6.0
+# An outline row farther than this (in its sigmas) from where the solve with the outlines puts its anchor is left out,
+# and the solve run again without it (a K-wire, a clamp's edge or a neighbour's shadow across the wire).
+OUTLINE_OUTLIER_CHI = 4.0
+
+
+def _with_outlines(sol: JointSolution, every: dict[int, MarkerPose], solve: dict, starts: dict[int, NDArray[np.float64]],
+                   marker_set: MarkerSet) -> JointSolution:
+    """``sol`` solved again with the outlines of its markers' open rings (:func:`.ring_outline.measure_ring_outline`) in
+    every view where the marker shows 3 BBs or more; ``solve`` takes them, so later solves keep them. Rows that the
+    solve leaves over ``OUTLINE_OUTLIER_CHI`` sigmas off are dropped and it is solved again. ``sol`` as it is where the
+    poses carry no images, nothing is measured, or the solve with the outlines fails."""
+    images = next((p.view_images for p in every.values() if p.view_images), ())
+    if not images:
+        return sol
+    outlines: dict[int, list] = {}
+    for view, image in images:
+        coef = next((c for v, c in sol.detector_distortion_px if v is view), None)
+        shown = {i: len(o[1]) for i in sol.used_ids for o in solve["observations"].get(i, ()) if o[0] is view}
+        for i in sol.used_ids:
+            if shown.get(i, 0) < 3:
+                continue
+            avoid, radius = [], []
+            for j, pose in sol.carm_from_marker.items():
+                if j == i:
+                    continue
+                other = marker_set.by_id(j)
+                bbs = project_distorted(view, apply(pose, other.bb_centers_mm), sol.detector_distortion_px)
+                scale = float(view.magnification(pose[:3, 3][None])[0]) / float(view.pixel_spacing_mm[1])
+                ring = project_distorted(view, apply(pose, other.ring_points_mm(180)), sol.detector_distortion_px)
+                avoid += [bbs, ring]
+                radius += [0.5 * other.bb_diameters_mm * scale + OUTLINE_CLEARANCE_PX, np.full(len(ring), 0.5 * other.ring_wire_diameter_mm * scale + OUTLINE_CLEARANCE_PX)]
+            found = measure_ring_outline(image, view, sol.carm_from_marker[i], marker_set.by_id(i), distortion_px=coef,
+                                         avoid_px=np.concatenate(avoid) if avoid else None, avoid_radius_px=np.concatenate(radius) if radius else 0.0)
+            if found is not None:
+                outlines.setdefault(i, []).append((view, found.anchors_mm, found.normals, found.offsets_px, found.sigmas_px))
+    if not outlines:
+        return sol
+    start = dict(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**starts, **sol.carm_from_marker})
+    while True:
+        try:
+            again = joint_solve(**start, **{**solve, "outlines": outlines})
+        except DrillnavError:
+            return sol
+        far = _far_rows(again, outlines, OUTLINE_OUTLIER_CHI)
+        if not far:
+            break
+        outlines = {i: [(v, a[keep], n[keep], o[keep], s[keep]) for v, a, n, o, s, keep in
+                        ((*row, np.array([(i, k, r) not in far for r in range(len(row[3]))])) for k, row in enumerate(per))
+                        if keep.any()] for i, per in outlines.items()}
+        outlines = {i: per for i, per in outlines.items() if per}
+        if not outlines:
+            return sol
+    solve["outlines"] = outlines
+    return again
+
+
+def _far_rows(sol: JointSolution, outlines: dict[int, list], chi: float) -> set[tuple[int, int, int]]:
+    """(marker id, index in its list, row) of the outline rows over ``chi`` sigmas from where ``sol`` puts their
+    anchors (a marker the solve rejected: all of its rows)."""
+    far = set()
+    for i, per in outlines.items():
+        for k, (view, anchors, normals, offsets, sigmas) in enumerate(per):
+            if i not in sol.carm_from_marker:
+                far |= {(i, k, r) for r in range(len(offsets))}
+                continue
+            uv = project_distorted(view, apply(sol.carm_from_marker[i], anchors), sol.detector_distortion_px)
+            far |= {(i, k, int(r)) for r in np.nonzero(np.abs(np.sum(uv * normals, axis=1) - offsets) > chi * sigmas)[0]}
+    return far
 
 
 def _ambiguous(roll: RingRoll) -> bool:
@@ -685,7 +767,7 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
         carm_from_drill0, _ = fit_constellation({i: own}, {i: drill_from_marker_}, starts)
         try:
             alt = joint_solve(carm_from_drill0=carm_from_drill0, carm_from_marker0={i: carm_from_drill0 @ drill_from_marker_},
-                              **{**solve, "observations": {i: own}, "strokes": None})
+                              **{**solve, "observations": {i: own}, "strokes": None, "outlines": None})
         except DrillnavError:
             continue
         if alt.used_ids == (i,) and alt.marker_chi[i] <= LONE_MARKER_MISFIT_CHI:
@@ -715,7 +797,7 @@ def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float
         return []
     alone: dict[int, JointSolution] = {}
     for i in sol.used_ids:
-        own = {key: {i: solve[key][i]} if solve.get(key) and i in solve[key] else None for key in ("strokes", "rolls")}
+        own = {key: {i: solve[key][i]} if solve.get(key) and i in solve[key] else None for key in ("strokes", "rolls", "outlines")}
         try:
             alone[i] = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={i: sol.carm_from_marker[i]},
                                    **{**solve, "observations": {i: solve["observations"][i]}, "min_markers": 1, **own})

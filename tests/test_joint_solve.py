@@ -387,3 +387,35 @@ def test_a_recovered_tag_is_charged_its_stated_corner_noise_and_its_square_misfi
     assert _corner_extra_px(tag(misfit=0.06, recovered=True)) == pytest.approx(0.4)
     assert _corner_extra_px(tag(misfit=0.5, recovered=False)) == pytest.approx(0.5 * np.sqrt(2.0))
     assert _corner_extra_px(tag(misfit=0.5, recovered=True)) == pytest.approx(np.hypot(0.5 * np.sqrt(2.0), 0.4))
+
+
+def test_outline_rows_share_their_bbs_shift_and_scale():
+    """A group's outline rows err by the group's shift along their normals and by its scale about the BBs' centre: the
+    whitening of BBs and outline rows together turns that covariance into the identity, and leaves other groups as
+    the BBs' own whitening does."""
+    from drillnav.registration.joint_solve import _group_whitening, _whitening_with_outlines
+
+    rng = np.random.default_rng(4)
+    bbs = [rng.normal(0.0, 30.0, (7, 2)) + 500.0, rng.normal(0.0, 30.0, (5, 2)) + 200.0]
+    t = np.linspace(0.0, 2 * np.pi, 12, endpoint=False)
+    normals = np.stack([np.cos(t), np.sin(t)], axis=1)
+    anchors = bbs[1].mean(axis=0) + 110.0 * normals
+    sigma, shift, scale = 0.35, 0.77, 0.24
+    w, noise, group = _whitening_with_outlines(bbs, None, {1: (anchors, normals, np.full(12, 0.5))}, sigma, shift, scale)
+    assert w.shape == (14 + 10 + 12, 14 + 10 + 12) and list(group) == [0] * 14 + [1] * 22
+    alone, alone_noise, _ = _group_whitening(bbs[:1], sigma, shift, scale)
+    np.testing.assert_allclose(w[:14, :14], alone)
+    np.testing.assert_allclose(noise[:14], alone_noise)
+    # Group 1's covariance drawn: BB coordinates then outline rows, each with the shared shift and scale.
+    pts = bbs[1]
+    centre, radius = pts.mean(axis=0), float(np.mean(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
+    draws = []
+    for _ in range(4000):
+        d = rng.normal(0.0, shift, 2)
+        s = rng.normal(0.0, scale / radius)
+        e_bb = rng.normal(0.0, sigma, (5, 2)) + d + s * (pts - centre)
+        e_o = rng.normal(0.0, 0.5, 12) + normals @ d + s * np.sum(normals * (anchors - centre), axis=1)
+        draws.append(np.concatenate([e_bb.ravel(), e_o]))
+    cols = np.r_[14:24, 24:36]
+    white = (w[14:, cols] @ np.asarray(draws).T) / noise[14:, None]
+    np.testing.assert_allclose(np.cov(white), np.eye(22), atol=0.08)
