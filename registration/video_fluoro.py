@@ -435,14 +435,22 @@ def _with_outlines(sol: JointSolution, every: dict[int, MarkerPose], solve: dict
         far = _far_rows(again, outlines, OUTLINE_OUTLIER_CHI)
         if not far:
             break
-        outlines = {i: [(v, a[keep], n[keep], o[keep], s[keep]) for v, a, n, o, s, keep in
-                        ((*row, np.array([(i, k, r) not in far for r in range(len(row[3]))])) for k, row in enumerate(per))
-                        if keep.any()] for i, per in outlines.items()}
-        outlines = {i: per for i, per in outlines.items() if per}
+        outlines = _without_rows(outlines, far)
         if not outlines:
             return sol
     solve["outlines"] = outlines
     return again
+
+
+def _without_rows(outlines: dict[int, list], far: set[tuple[int, int, int]]) -> dict[int, list]:
+    """``outlines`` without the rows ``far`` names ((marker id, index in its list, row)), and without what is left empty."""
+    kept: dict[int, list] = {}
+    for i, per in outlines.items():
+        for k, (view, anchors, normals, offsets, sigmas) in enumerate(per):
+            keep = np.array([(i, k, r) not in far for r in range(len(offsets))])
+            if keep.any():
+                kept.setdefault(i, []).append((view, anchors[keep], normals[keep], offsets[keep], sigmas[keep]))
+    return kept
 
 
 def _far_rows(sol: JointSolution, outlines: dict[int, list], chi: float) -> set[tuple[int, int, int]]:
@@ -767,7 +775,7 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
         carm_from_drill0, _ = fit_constellation({i: own}, {i: drill_from_marker_}, starts)
         try:
             alt = joint_solve(carm_from_drill0=carm_from_drill0, carm_from_marker0={i: carm_from_drill0 @ drill_from_marker_},
-                              **{**solve, "observations": {i: own}, "strokes": None, "outlines": None})
+                              **{**solve, "observations": {i: own}, "strokes": None})
         except DrillnavError:
             continue
         if alt.used_ids == (i,) and alt.marker_chi[i] <= LONE_MARKER_MISFIT_CHI:
