@@ -72,8 +72,8 @@ def measure_ring_outline(image_log: NDArray[np.floating], view: CArmView, carm_f
     """``design``'s ring in the image (log attenuation, bright where dense) near where ``carm_from_marker`` (4, 4) puts
     it (moved by the view's intensifier ``distortion_px`` (2,) where estimated), measured across its ellipse at
     ``anchors`` points around it: those inside the image, farther than ``avoid_radius_px`` (a number, or (M,) one per
-    point) from every point of ``avoid_px`` (M, 2) (other shadows: the marker's neighbours), matched unambiguously. None where the ring is not open
-    (:data:`OPEN_RING_RATIO`) or no point is taken."""
+    point) from every point of ``avoid_px`` (M, 2) (other shadows: the marker's neighbours), matched unambiguously.
+    None where the ring is not open (:data:`OPEN_RING_RATIO`) or no point is taken."""
     def image_of(points_mm: NDArray[np.float64]) -> NDArray[np.float64]:
         return view.distorted_px(view.project(apply(carm_from_marker, points_mm)), distortion_px)
 
