@@ -98,10 +98,16 @@ def measure_ring_outline(image_log: NDArray[np.floating], view: CArmView, carm_f
         return None
     # The ellipse's tangent at each anchor from the ring's points just either side of it; its normal outwards.
     d = 0.05 * 2 * np.pi / anchors
-    tangent = image_of(ring_at(t + d)) - image_of(ring_at(t - d))
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-    normal *= np.sign(np.sum(normal * (ring_px - image_of(c[None])[0]), axis=1))[:, None]
+    centre_px = image_of(c[None])[0]
+
+    def normals_at(angles: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        step = image_of(ring_at(angles + d)) - image_of(ring_at(angles - d))
+        speed = np.linalg.norm(step, axis=1) / (2 * d)  # px per radian of the ring
+        along = step / np.linalg.norm(step, axis=1, keepdims=True)
+        out = np.stack([along[:, 1], -along[:, 0]], axis=1)
+        return out * np.sign(np.sum(out * (image_of(ring_at(angles)) - centre_px), axis=1))[:, None], speed
+
+    normal, speed = normals_at(t)
     image = np.ascontiguousarray(image_log, dtype=np.float32)
     rows, cols = image.shape
     steps = int(round(search_px / STEP_PX))
@@ -111,8 +117,15 @@ def measure_ring_outline(image_log: NDArray[np.floating], view: CArmView, carm_f
     tmpl = 2.0 * np.sqrt(np.maximum(wire * wire - s_tmpl * s_tmpl, 0.0))
     s_data = np.arange(len(s_tmpl) + 2 * steps) * STEP_PX + s_tmpl[0] - steps * STEP_PX
     u = np.arange(-ARC_HALF_PX, ARC_HALF_PX + 1e-9, 1.0)
+    # Each profile is averaged along the ellipse itself, across it at each of its points: along a straight tangent the
+    # curve falls inside by its sagitta (u^2 / 2R), and the averaged wire's centre with it: on the clean flat scenes'
+    # rings, 0.023 px inwards on average from poses 2-3 mm off and 0.039 px at the true poses; along the ellipse,
+    # 0.000 and 0.016 px.
+    arc = (t[:, None] + u[None, :] / speed[:, None]).ravel()
+    along_px = image_of(ring_at(arc)).reshape(len(t), len(u), 2)
+    along_normal = normals_at(arc)[0].reshape(len(t), len(u), 2)
     # Every anchor's grid (K, U, S, 2) sampled at once; an anchor near another shadow or reaching outside the image is out.
-    grid = ring_px[:, None, None] + u[None, :, None, None] * tangent[:, None, None] + s_data[None, None, :, None] * normal[:, None, None]
+    grid = along_px[:, :, None] + s_data[None, None, :, None] * along_normal[:, :, None]
     ok = np.all((grid[..., 0] >= 1) & (grid[..., 1] >= 1) & (grid[..., 0] <= cols - 2) & (grid[..., 1] <= rows - 2), axis=(1, 2))
     if avoid_px is not None and len(avoid_px):
         near = np.linalg.norm(ring_px[:, None] - np.asarray(avoid_px, dtype=np.float64)[None], axis=2) < avoid_radius_px

@@ -45,8 +45,12 @@ def test_the_wire_is_found_where_the_ring_lies_from_a_pose_millimetres_off_and_a
             truth_px = _true_px(ap, truth, outline)
             assert np.median(np.abs(outline.predicted_px - truth_px)) > 0.3, "the pose was put off across the wire"
             rows.append(outline.offsets_px - truth_px)
-    err = np.abs(np.concatenate(rows))
+    signed = np.concatenate(rows)
+    err = np.abs(signed)
     assert len(rows) >= 6 and len(err) >= 150, (len(rows), len(err))
+    # Averaged along a straight tangent, the profiles put the wire 0.023 px inside the ring on average (its sagitta);
+    # along the ellipse, 0.0001 px.
+    assert abs(np.mean(signed)) < 0.012, np.mean(signed)
     # The twin's clean shots: the wire's centre to a tenth of a pixel at most anchors, within the stated noise at 90 %.
     assert np.median(err) < 0.1 and np.percentile(err, 90) < OUTLINE_SIGMA_PX, (np.median(err), np.percentile(err, 90))
 
@@ -95,7 +99,7 @@ def test_a_k_wire_across_the_ring_moves_no_point_it_leaves_in():
 
 def test_a_blurrier_detector_than_the_twins_still_gives_the_ring_all_around():
     """The twin's shots blurred 1-3 px more (a larger focal spot's penumbra, a softer detector): the wire's profile is
-    matched at the image's own blur, so every point is still taken, each within 0.3 px."""
+    matched at the image's own blur, so as many points are taken as in the sharp shot, each within 0.3 px."""
     scene, images = flat_marker_scene(8)
     ap = scene.views["ap"]
     sharp = {i: measure_ring_outline(images["ap"], ap, t, scene.marker_set.by_id(i)) for i, t in scene.carm_from_marker.items()}
@@ -106,6 +110,6 @@ def test_a_blurrier_detector_than_the_twins_still_gives_the_ring_all_around():
         for i, taken in sharp.items():
             truth = scene.carm_from_marker[i]
             outline = measure_ring_outline(image, ap, truth, scene.marker_set.by_id(i))
-            assert outline is not None and len(outline.offsets_px) == taken, (blur_px, i, taken)
+            assert outline is not None and len(outline.offsets_px) >= taken, (blur_px, i, taken)
             err = np.abs(outline.offsets_px - _true_px(ap, truth, outline))
             assert err.max() < 0.3 and np.median(err) < 0.15, (blur_px, i, err.max(), np.median(err))
