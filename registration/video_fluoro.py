@@ -227,7 +227,8 @@ def register_video_to_fluoro(
                        for i in vids if i in marker_set.ids and i not in joinable}
         again = claim_from_solution(tuple(every.values()), {i: sol.carm_from_marker[i] for i in sol.used_ids}, marker_set, camera_only=camera_only,
                                     distortion=sol.detector_distortion_px)
-        if again:
+        first, before_claims = sol, (dict(every), marker_poses, joinable, dict(carm_from_marker), dict(solve))
+        while again:
             blobs_from = next(iter(every.values()))
             for i in sorted(set(again) - set(every)):
                 every[i] = MarkerPose(marker_id=i, carm_from_marker=camera_only[i], residual_px=float("nan"), n_views=0, n_points=0, converged=False,
@@ -243,7 +244,15 @@ def register_video_to_fluoro(
                              corner_slide_px={i: cut_corner_slides_px(vids[i].corners_px, width=camera.width, height=camera.height) for i in joinable},
                              min_markers=min(HORN_MIN_MARKERS, len(joinable)))
             solve["observations"] = {i: every[i].observations for i in joinable}
-            sol = joint_solve(carm_from_drill0=sol.carm_from_drill, carm_from_marker0={**carm_from_marker, **sol.carm_from_marker}, **solve)
+            sol = joint_solve(carm_from_drill0=first.carm_from_drill, carm_from_marker0={**carm_from_marker, **first.carm_from_marker}, **solve)
+            misfit = _misfit_claims(sol, again)
+            if not misfit:
+                break
+            # A claim the solve cannot fit is a wrong one: solved again from before the claims, without it.
+            every, marker_poses, joinable, carm_from_marker, solve = (dict(before_claims[0]), before_claims[1], before_claims[2],
+                                                                      dict(before_claims[3]), dict(before_claims[4]))
+            again = {i: kept for i, per in again.items() if (kept := tuple(o for k, o in enumerate(per) if (i, k) not in misfit))}
+            sol = first
         # An edge-on marker (a lateral view, markers on the anterior skin) shows few BBs or none, but its ring's stroke
         # across its line fixes its depth along the other views' beams: measured at the solve's poses, solved again.
         sol = _with_strokes(sol, every, solve, carm_from_marker, marker_set)
@@ -268,11 +277,17 @@ def register_video_to_fluoro(
             settled = sol
             sol = _with_outlines(sol, every, solve, carm_from_marker, marker_set)
             before_mirror = sol if before_mirror is settled else before_mirror
+        alone = _markers_alone(sol, solve)
+        kept = _seen_in_more_views(alone, every) if alternative is None and fit is None else None
+        if kept is not None:
+            # Two markers that fit only alone, one posed over two views, the other in one: the first alone.
+            sol = replace(kept, rejected_ids=(*sol.rejected_ids, *(i for i in sol.used_ids if i not in kept.used_ids)))
+            alone = {}
         carm_from_drill, corner_rms = sol.carm_from_drill, sol.corner_rms_px
         used, rejected = list(sol.used_ids), list(sol.rejected_ids)
         carm_from_marker.update(sol.carm_from_marker)
         covariance = sol.covariance_drill if alternative is None else _spanning(sol.covariance_drill, sol.carm_from_drill, alternative, sol.pivot_carm_mm)
-        alone_solutions = tuple(_two_markers_alone(sol, solve))
+        alone_solutions = tuple(a.carm_from_drill for a in alone.values())
         if alone_solutions and before_mirror.used_ids == sol.used_ids and not _same_drill(before_mirror, sol):
             # Two markers that fit only alone, the constellation's mirror taken: the better of two misfits says little.
             # The bounds reach the solution it left, and each marker's own solved from there too (one view: a marker
@@ -298,6 +313,33 @@ def register_video_to_fluoro(
         carm_from_marker=carm_from_marker,
         **extra,
     )
+
+
+# A claimed view's BBs whose RMS distance from where the solve that took them projects them exceeds this (px) were
+# not that marker's: the claim's other evidence (its tilt, its slide along the beam) fitted blobs the solve's other
+# BBs and tags cannot place there. Right claims fit within their noise (about 1 px, crowded BBs a few).
+CLAIM_MISFIT_PX = 10.0
+
+
+def _misfit_claims(sol: JointSolution, claims: dict[int, tuple]) -> set[tuple[int, int]]:
+    """{(marker id, index in its claims)}: the claimed observations ((view, design (N, 3) mm, blobs (N, 2) px), ...) per
+    marker of ``claims`` that ``sol`` (solved with them) fits at over ``CLAIM_MISFIT_PX`` RMS; a marker the solve left
+    out is not judged.
+
+    Twin seed 31300 (random pair, both views, first pose, markers stuck flat): marker 27, observed in the first view
+    only, slid along its beam and tilted, claimed four blobs in the second, two of them discs, 90 and 100 px from its
+    BBs' true places; the solve's chi-square went 25.6 -> 857 and the axis lay 4.9 mm / 2.1 deg off under a 1.6 mm /
+    0.5 deg bound, unflagged.
+    """
+    out = set()
+    for i, per in claims.items():
+        if i not in sol.carm_from_marker:
+            continue
+        for k, (view, design_mm, blobs_px) in enumerate(per):
+            predicted = project_distorted(view, apply(sol.carm_from_marker[i], np.asarray(design_mm, dtype=np.float64)), sol.detector_distortion_px)
+            if np.sqrt(np.mean(np.sum((predicted - np.asarray(blobs_px, dtype=np.float64)) ** 2, axis=1))) > CLAIM_MISFIT_PX:
+                out.add((i, k))
+    return out
 
 
 def _bb_count(pose: MarkerPose) -> int:
@@ -787,8 +829,34 @@ def _settle_lone_marker_views(sol: JointSolution, solve: dict, drill_from_marker
 
 
 def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float64]]:
-    """Two markers that do not fit together: each marker solved alone on its BBs, strokes and tag, their
-    ``carm_from_drill`` (4, 4) each; [] when they fit together, or for a marker that gives no solution.
+    """:func:`_markers_alone`'s ``carm_from_drill`` (4, 4) each."""
+    return [a.carm_from_drill for a in _markers_alone(sol, solve).values()]
+
+
+def _seen_in_more_views(alone: dict[int, JointSolution], every: dict[int, MarkerPose]) -> JointSolution | None:
+    """Of two markers that fit only alone (:func:`_markers_alone`), the one whose BBs two views or more observed, when
+    it fits its own solution and the other's BBs one view alone: that marker's solution; None otherwise.
+
+    One view leaves a marker's pose open along the beam and to its mirror image: posed there from a ring matched to
+    the wrong marker, or on its mirror, it still fits alone (four BBs and a tag give its pose and the drill's with room
+    to spare), while a marker posed over two views is pinned by both. Twin seed 29600 (random pair, both views, second
+    pose): marker 38, posed on 4 BBs of the second view 93 mm off with its normal turned 161 deg, fitted alone at
+    chi-square 0.0, marker 30 (5 and 3 BBs in the two views) at 13.6 (its RMS 0.36); together 2494, and the axis lay
+    48.9 mm / 19.2 deg off (flagged).
+    """
+    if len(alone) != 2:
+        return None
+    views = {i: len({id(o[0]) for o in every[i].observations}) for i in alone}
+    pinned = [i for i in alone if views[i] >= 2]
+    if len(pinned) != 1 or min(views.values()) != 1:
+        return None
+    own = alone[pinned[0]]
+    return own if own.marker_chi[pinned[0]] <= LONE_MARKER_MISFIT_CHI else None
+
+
+def _markers_alone(sol: JointSolution, solve: dict) -> dict[int, JointSolution]:
+    """Two markers that do not fit together: each marker solved alone on its BBs, strokes and tag, {marker id: its
+    solution}; {} when they fit together, without a marker that gives no solution.
 
     Two markers that each fit alone but not together stay in the joint solve (its vote cannot tell which is wrong), and
     their fit's covariance, scaled by its reduced chi-square, need not reach either one's own solution. They do not fit
@@ -802,7 +870,7 @@ def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float
     """
     # Alone each fits at a chi-square of 0 or more: a pair within the limit together is within it over them too.
     if len(sol.used_ids) != 2 or (max(sol.marker_chi.values()) <= LONE_MARKER_MISFIT_CHI and sol.chi2 <= TWO_MARKERS_DISAGREE_CHI2):
-        return []
+        return {}
     alone: dict[int, JointSolution] = {}
     for i in sol.used_ids:
         own = {key: {i: solve[key][i]} if solve.get(key) and i in solve[key] else None for key in ("strokes", "rolls", "outlines")}
@@ -813,8 +881,8 @@ def _two_markers_alone(sol: JointSolution, solve: dict) -> list[NDArray[np.float
             continue
     disagree = len(alone) == 2 and sol.chi2 - sum(a.chi2 for a in alone.values()) > TWO_MARKERS_DISAGREE_CHI2
     if max(sol.marker_chi.values()) <= LONE_MARKER_MISFIT_CHI and not disagree:
-        return []
-    return [a.carm_from_drill for a in alone.values()]
+        return {}
+    return alone
 
 
 def _distinct_drill(best: JointSolution, other: JointSolution) -> NDArray[np.float64] | None:
