@@ -100,3 +100,26 @@ def test_a_claim_the_solve_cannot_fit_is_left_out():
     pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm)
     assert off_mm <= pe.position90_mm and off_deg <= pe.angle90_deg, (off_mm, off_deg, pe)
     assert off_mm < 1.5, off_mm
+
+
+def test_a_claim_that_drags_the_other_markers_is_left_out():
+    """Twin seed 32001 (AP+lateral, markers stuck flat, the second drill pose): marker 9, posed in the AP view only,
+    claimed two BBs in the lateral view after the first solve, one of them 13.6 px from its own. The solve fitted both
+    under ``CLAIM_MISFIT_PX`` by spreading the wrong one over both markers: chi-square 6.1 -> 126 on four more rows, and
+    the two markers no longer fitted together (8.49 mm / 3.8 deg, flagged). The claim whose removal gives that back is
+    left out (``video_fluoro._dragging_claim``); marker 9's ring stroke in the lateral view places it instead."""
+    import accuracy
+    from twin_images import axis_error_at_entry
+
+    from drillnav.registration.video_fluoro import predicted_axis_error
+
+    scene, poses, carm_from_drill, video, image = study_shot(32001, "ap+lateral", 1, marker_tilt_deg=(0.0, 10.0))
+    video, reg = accuracy._register(scene, image, video, poses, joint=True)
+    assert set(reg.used_ids) == {9, 39}, reg.used_ids
+    # Marker 9 keeps its AP view's BBs alone: the lateral claim is left out.
+    pose9 = next(p for p in reg.marker_poses if p.marker_id == 9)
+    assert len({id(o[0]) for o in pose9.observations}) == 1, [len(o[2]) for o in pose9.observations]
+    off_mm, off_deg = axis_error_at_entry(scene, carm_from_drill, reg)
+    pe = predicted_axis_error(video, poses, reg, scene.calibrated_axis_drill, working_point_carm_mm=scene.corridor_entry_carm_mm)
+    assert off_mm < 1.5 and off_deg < 1.0, (off_mm, off_deg)
+    assert off_mm <= pe.position90_mm and off_deg <= pe.angle90_deg and pe.reliable, (off_mm, off_deg, pe)
