@@ -16,7 +16,9 @@ fluoroscopy
     (marker, view) into a common shift, a common scale and the independent remainder as for the corners.
 
 Per degradation setting given (``--settings``, each a Degradations.parse text), RMS over all groups.
-Run: nice -n 10 .venv/bin/python benchmarks/noise_decomposition.py [--seeds 4 --first-seed 9100]
+``--camera-size WxH`` measures the drill camera's part at another frame size (the degradations keep their sizes in
+pixels, as the study's ``--camera-size`` draws them).
+Run: nice -n 10 .venv/bin/python benchmarks/noise_decomposition.py [--seeds 4 --first-seed 9100] [--camera-size 640x480]
 Ends with one JSON line.
 """
 
@@ -151,7 +153,14 @@ def main() -> None:
                     help="';'-separated degradation settings (each as --degradations of the study)")
     ap.add_argument("--views", default="inlet,outlet")
     ap.add_argument("--ct", type=Path, default=CT)
+    ap.add_argument("--camera-size", default="1280x720", help="the drill camera's frame, WIDTHxHEIGHT px (as the study's --camera-size)")
     args = ap.parse_args()
+    try:
+        camera_size = tuple(int(v) for v in args.camera_size.lower().split("x"))
+    except ValueError:
+        camera_size = ()
+    if len(camera_size) != 2 or min(camera_size) < 160:
+        ap.error(f"--camera-size must be WIDTHxHEIGHT px, each at least 160, got {args.camera_size!r}")
     t0 = time.time()
     patient = None
     results = {}
@@ -163,7 +172,8 @@ def main() -> None:
         flu: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "manufacturing": [], "mfg_shift": []}
         xray = any(getattr(deg, n) for n in ("low_dose", "ct_anatomy", "hardware", "collimator", "ii_distortion"))
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            scene = make_scene(seed=seed, views=args.views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None)
+            scene = make_scene(seed=seed, views=args.views, render=False, degradations=deg, voxel_anatomy=patient if deg.ct_anatomy else None,
+                               image_size=camera_size)
             if deg.camera or not xray:
                 for k, v in camera_errors(scene, seed, args.poses).items():
                     cam[k] += v
@@ -179,8 +189,9 @@ def main() -> None:
                          + (f"; of which common to the frame: shift {s['frame_shift_px_rms_per_axis']:.3f}, scale {s['frame_scale_px_rms']:.3f}"
                             if "frame_shift_px_rms_per_axis" in s else ""))
         print(f"{deg.label():60s} camera  {fmt(c)}\n{'':60s} fluoro  {fmt(f)}", flush=True)
-    print(f"seeds {args.first_seed}-{args.first_seed + args.seeds - 1}, {args.poses} camera frames per scene, views {args.views}; {time.time() - t0:.0f} s")
-    print(json.dumps({"first_seed": args.first_seed, "seeds": args.seeds, "results": results}))
+    print(f"seeds {args.first_seed}-{args.first_seed + args.seeds - 1}, {args.poses} camera frames per scene, views {args.views}, "
+          f"camera {camera_size[0]}x{camera_size[1]}; {time.time() - t0:.0f} s")
+    print(json.dumps({"first_seed": args.first_seed, "seeds": args.seeds, "camera_size": list(camera_size), "results": results}))
 
 
 if __name__ == "__main__":
