@@ -369,6 +369,8 @@ def register_markers(
         poses += [replace(p, needs_camera=True, loose=True)
                   for p in pool.map(lambda item: _try_solve(item[0], item[1][1], max_residual_px, item[1][2]), sorted(per_loose.items()))
                   if p is not None and p.converged]
+    if len(views) >= 2:
+        poses = _rings_taken_back(poses, detections, views, marker_set, max_residual_px)
     # Blobs of each view that no identified marker explains: the unidentified markers' BBs are among them.
     # Only markers that got a pose claim their blobs: one identified but not posed (IPPE failed: its BBs nearly collinear)
     # leaves them free, for the video's identities to claim.
@@ -376,6 +378,7 @@ def register_markers(
     # paired wrongly) claims none of its blobs: the pose claims them there by projection, paired anew.
     posed_in = {p.marker_id: {id(o[0]) for o in p.observations} for p in poses}
     claimed = [{blob_key(b.center_px) for m in det.markers if id(view) in posed_in.get(m.marker_id, ()) for b in m.bbs}
+               | {blob_key(c) for p in poses if not (p.loose or p.needs_camera) for v, _, img in p.observations if v is view for c in img}
                for det, view in zip(detections, views)]
     free = [np.array([b.center_px for b in det.blobs if blob_key(b.center_px) not in claimed[k]]).reshape(-1, 2) for k, det in enumerate(detections)]
     non_disc = [{blob_key(b.center_px) for b in det.blobs if not b.places and blob_key(b.center_px) not in claimed[k]} for k, det in enumerate(detections)]
@@ -405,6 +408,54 @@ def register_markers(
                 pose = again
         out.append(replace(pose, **blobs))
     return tuple(out)
+
+
+def _one_view(pose: MarkerPose, *, paired_two_ways: bool = False) -> int | None:
+    """id() of the one view whose BBs pose ``pose``; None when several do, when it is a hypothesis, and (unless
+    ``paired_two_ways``) when its BBs pair with the design two ways."""
+    if pose.loose or pose.needs_camera or (pose.solution_observations and not paired_two_ways) or not pose.converged:
+        return None
+    seen = {id(o[0]) for o in pose.observations}
+    return next(iter(seen)) if len(seen) == 1 else None
+
+
+def _rings_taken_back(poses: list, detections: list[FluoroDetections], views: list[CArmView], marker_set: MarkerSet,
+                      max_residual_px: float) -> list:
+    """``poses`` with each ring identified in one view only as marker B given to marker A instead, where A, identified
+    in one other view only, claims B's BBs there by projection from its pose and fits both views at ``max_residual_px``,
+    and B's ring is the flatter of the two (nearer edge-on, where the pattern tells less).
+
+    Two markers cannot lie at one place: a ring where another view's marker projects its own pattern is that marker's,
+    and an edge-on ring's few distinguishable BB heights fit another marker's pattern as well as its own. Twin seed
+    31801 (flat markers, AP+lateral, second pose): marker 29 posed in the AP view, its ring edge-on in the lateral view
+    (axes 0.12 apart) identified as marker 45 at 0.59 mm; the camera saw 45's tag, and the registration on the two
+    disagreeing markers was 151 mm off (flagged).
+    """
+    rings = {(m.marker_id, id(view)): (min(m.ring_ellipse[1]) / max(max(m.ring_ellipse[1]), 1e-9), np.array([b.center_px for b in m.bbs]).reshape(-1, 2))
+             for det, view in zip(detections, views) for m in det.markers}
+    out = list(poses)
+    for a in list(out):
+        va = _one_view(a)
+        if va is None or a not in out:
+            continue
+        for b in list(out):
+            vb = _one_view(b, paired_two_ways=True)
+            if vb is None or b is a or vb == va or (a.marker_id, vb) in rings or (b.marker_id, vb) not in rings:
+                continue
+            ratio_b, blobs_b = rings[(b.marker_id, vb)]
+            if ratio_b >= rings[(a.marker_id, va)][0]:
+                continue
+            free = [blobs_b if id(v) == vb else np.zeros((0, 2)) for v in views]
+            trial = _claimed_elsewhere(a.marker_id, a.carm_from_marker, a.observations, a.solutions, views=views, free=free,
+                                       non_disc=[set() for _ in views], design=marker_set.by_id(a.marker_id).bb_centers_mm,
+                                       max_residual_px=max_residual_px)
+            if trial is None or not trial.converged:
+                continue
+            if sum(len(o[2]) for o in trial.observations if id(o[0]) == vb) < CROSS_VIEW_SLID_MIN_BBS:
+                continue
+            out = [trial if p is a else p for p in out if p is not b]
+            break
+    return out
 
 
 def _claimed_elsewhere(marker_id: int, start: NDArray[np.float64], observations: tuple, slide_starts, *, views, free, non_disc, design,
