@@ -57,6 +57,30 @@ REPAIR_TOLERANCE_PX = 8.0
 # a misfit above it as extra corner noise (:func:`.joint_solve.square_misfit_noise_px`), and the repair of a displaced
 # corner stops at a placement this good.
 SQUARE_MISFIT_MIN_PX = 0.2
+# A detected tag's corner noise from its own edges (:func:`_edge_refined`): each corner is the crossing of two lines
+# fitted to samples of the edges' middle 60 %, which scatter about their lines by s px RMS; a blur w px wide leaves
+# about 0.6 side / w of them independent (n, 2 to the samples taken). A line so fitted places its ends, half a side
+# from its middle, to s sqrt((1 + 12 (0.5 / 0.6)^2) / n) = 3.05 s / sqrt(n); EDGE_SIGMA_GAIN times that is the tag's
+# stated corner noise (``VideoMarker.corner_sigma_px``), which the joint solve charges where it exceeds its own
+# (:func:`.video_fluoro._corner_extra_px`). Most of a tag's corner error moves its corners as another view of the
+# square would (a tilt, a turn): its pose absorbs it and no residual shows it, but its edges do. Against the twin's
+# truth under every camera degradation (seeds 9200-9207, 4 frames each, the corners' error less its shift and scale,
+# RMS): at 1280x720 (85 tags) the bare prediction (gain 1) states 0.11 px RMS where the tags were 0.15 px off, at
+# 640x480 (88 tags) 0.20 px where they were 0.47 px off; the gain of 2 states 0.21 and 0.40 px. At 1280x720 that stays
+# under the joint solve's own 0.3 px for nearly every tag: only the smaller frame's tags are charged more.
+EDGE_SIGMA_PER_SAMPLE = 3.05
+EDGE_SIGMA_GAIN = 2.0
+
+
+def edge_corner_sigma_px(edge_rms_px: NDArray[np.float64], side_px: float, step_width_px: float, *, samples: int = 24) -> float:
+    """A tag's corner noise (1 sigma, px) from its four edges' line fits: ``edge_rms_px`` (4,) each edge's samples' RMS
+    distance from its line, ``side_px`` the tag's mean side, ``step_width_px`` the edges' step width (the blur's
+    extent); see :data:`EDGE_SIGMA_GAIN`. NaN where an edge's scatter is not finite."""
+    s = float(np.sqrt(np.mean(np.square(np.asarray(edge_rms_px, dtype=np.float64)))))
+    n = float(np.clip(0.6 * side_px / max(step_width_px, 1.0), 2.0, samples))
+    return EDGE_SIGMA_GAIN * EDGE_SIGMA_PER_SAMPLE * s / np.sqrt(n)
+
+
 # A tag ArUco decoded is misread when its code cells, read again through its refined corners
 # (:func:`.tag_recovery.read_code`, which leaves a cell under a highlight, a glove's edge or blur between the levels
 # unread), disagree with its id in at least MISREAD_MIN_CELLS cells and another id of the marker set's (at any
@@ -166,8 +190,9 @@ def _gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
 
 
 def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samples: int = 24, half_px: float = 4.0, step_px: float = 0.5,
-                  max_residual_px: float = 0.35) -> list[NDArray[np.float64] | None]:
-    """Each tag's corners (4, 2) as the intersections of lines fitted to the four outer edges of its black border, or None.
+                  max_residual_px: float = 0.35) -> list[tuple[NDArray[np.float64], float] | None]:
+    """Each tag's corners (4, 2) as the intersections of lines fitted to the four outer edges of its black border, with
+    the corner noise (px) its edges' scatter states (:func:`edge_corner_sigma_px`), or None.
 
     quads : (n, 4, 2) detected corners of n tags; one result per tag.
 
@@ -190,10 +215,10 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
     along = np.linspace(0.2, 0.8, samples)
 
     def lines(around: NDArray[np.float64], reach_px: float, falling_inwards: bool, trim: bool = False
-              ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
-        """Corners (m, 4, 2), whether found (m,), and (first pass only, else None) each tag's median step width
+              ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None, NDArray[np.float64]]:
+        """Corners (m, 4, 2), whether found (m,), (first pass only, else None) each tag's median step width
         (m,): px where the gradient is over half its peak (about 2 px for a sharp edge, the blur's extent for a
-        wide one)."""
+        wide one), and each edge's samples' RMS distance from its line (m, 4)."""
         offsets = np.arange(-reach_px, reach_px + step_px / 2, step_px)
         prof = edge_profiles(gray, around, along=along, offsets_px=offsets)
         width = None
@@ -220,9 +245,9 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
             point, direction, _, rms = fit_edge_lines(edge, keep)
             good &= (keep.mean(axis=2) >= 0.75).all(axis=1) & (np.nan_to_num(rms, nan=np.inf).max(axis=1) <= 1.5 * max_residual_px)
         found, crossed = edge_corners(point, direction)
-        return found, good & crossed, width
+        return found, good & crossed, width, rms
 
-    corners, ok, width = lines(quads, half_px, False)
+    corners, ok, width, rms = lines(quads, half_px, False)
     # Again, centred on the lines found, over twice the reach: a motion blur wider than the first window (up to
     # 12 px against +-4 px) leaves a flat gradient across it, whose centroid is the window's centre, i.e. the
     # detector's corners, which blur pulls inwards. Only a rise from the black border out to the white base
@@ -232,13 +257,15 @@ def _edge_refined(gray: NDArray[np.float32], quads: NDArray[np.float64], *, samp
     ok &= np.linalg.norm(corners - quads, axis=2).max(axis=1) <= half_px
     redo = np.nonzero(~ok | (width > 3.0))[0]
     if len(redo):
-        again, ok2, _ = lines(np.where(ok[redo, None, None], corners[redo], quads[redo]), 2.0 * half_px, True, trim=True)
+        again, ok2, _, rms2 = lines(np.where(ok[redo, None, None], corners[redo], quads[redo]), 2.0 * half_px, True, trim=True)
         # The detector's corners can lie 4-5 px inside a tag blurred by 12 px: the second pass's corners may lie as
         # far from them as its own reach.
         ok2 &= np.linalg.norm(again - quads[redo], axis=2).max(axis=1) <= 2.0 * half_px
         corners[redo] = np.where(ok2[:, None, None], again, corners[redo])
+        rms[redo] = np.where(ok2[:, None], rms2, rms[redo])
         ok[redo] |= ok2
-    return [corners[i] if ok[i] else None for i in range(n)]
+    side = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean(axis=1)
+    return [(corners[i], edge_corner_sigma_px(rms[i], float(side[i]), float(width[i]), samples=samples)) if ok[i] else None for i in range(n)]
 
 
 def detect_tags(image: NDArray[np.uint8], *, dictionary: str = "DICT_6X6_250") -> list[tuple[int, NDArray[np.float64]]]:
@@ -361,10 +388,11 @@ class VideoMarkerLocator:
             if gray_f is None:
                 gray_f = gray.astype(np.float32)
             edges = _edge_refined(gray_f, np.stack([quad for _, _, quad in kept]))
-            for (aruco_id, spec, quad), e in zip(kept, edges):
+            for (aruco_id, spec, quad), fitted in zip(kept, edges):
+                e, edge_sigma = fitted if fitted is not None else (None, None)
                 if e is None:
                     e = self._edges_despite_occlusion(gray_f, quad, aruco_id=aruco_id, dictionary=name, spec=spec)
-                marker = self._pose(spec, quad if e is None else e)
+                marker = self._pose(spec, quad if e is None else e, edge_sigma_px=edge_sigma)
                 if marker.reprojection_error_px > DISPLACED_CORNER_CHECK_PX:
                     # A poor view of its square: one corner may have moved (a glove's edge taken for the tag's). Placed
                     # from the other three where its edges and code bear that out and the square fits better; not so
@@ -629,16 +657,23 @@ class VideoMarkerLocator:
         shift, profiles = border_shift_px(gray, marker.corners_px, code_cells(spec.dictionary, spec.aruco_id))
         if not profiles:
             return marker
-        moved = self._pose(spec, moved_outline(marker.corners_px, shift), corner_sigma_px=marker.corner_sigma_px if marker.recovered else None)
+        moved = self._pose(spec, moved_outline(marker.corners_px, shift), corner_sigma_px=marker.corner_sigma_px if marker.recovered else None,
+                           edge_sigma_px=None if marker.recovered else marker.corner_sigma_px)
         return replace(moved, named_among_posed=marker.named_among_posed)
 
-    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None) -> VideoMarker:
+    def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None,
+              edge_sigma_px: float | None = None) -> VideoMarker:
+        """The tag's pose from its ``corners`` (4, 2). ``corner_sigma_px``: a recovered tag's corner noise (marks it
+        recovered); ``edge_sigma_px``: a detected tag's, as its edges state it (:func:`edge_corner_sigma_px`), taken
+        where it exceeds the locator's."""
         k, dist = self.camera.camera_matrix, self.camera.distortion
         obj = spec.object_points
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         best = int(np.argmin(np.asarray(errs).ravel()))
         rvec, tvec = cv2.solvePnPRefineLM(obj, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
         sigma = self.corner_sigma_px if corner_sigma_px is None else float(corner_sigma_px)
+        if corner_sigma_px is None and edge_sigma_px is not None and np.isfinite(edge_sigma_px):
+            sigma = max(sigma, float(edge_sigma_px))
         # A corner the frame's edge made (an outline the edge cuts) lies somewhere along its side: weighed so, across it.
         slides = cut_corner_slides_px(corners, width=self.camera.width, height=self.camera.height)
         slid = bool(np.any(slides != 0))

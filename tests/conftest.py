@@ -72,7 +72,7 @@ COMPUTE_MODULES = frozenset({
     "test_tag_border.py", "test_tag_detection.py", "test_tag_hypotheses.py", "test_tracked_markers.py", "test_tracking_covariance.py", "test_tag_recovery.py", "test_tag_search.py", "test_tag_square_fit.py", "test_twin_aim.py", "test_twin_degradations.py", "test_twin_detector.py", "test_video_claims.py",
     "test_ring_split.py", "test_lone_marker_mirror.py", "test_tag_misread.py", "test_tag_displaced_corner.py", "test_tag_beam_slide.py",
     "test_named_second_view.py", "test_named_then_recovered.py", "test_named_alone.py", "test_lone_marker_views.py", "test_face_on_mirror.py", "test_two_markers_alone.py", "test_blob_split.py", "test_ring_crowding.py", "test_edge_on_ring.py", "test_edge_on_roll.py",
-    "test_cut_corners.py", "test_tag_cover.py", "test_unposed_tag_search.py", "test_claim_ties.py", "test_ring_taken_back.py",
+    "test_cut_corners.py", "test_tag_cover.py", "test_unposed_tag_search.py", "test_claim_ties.py", "test_ring_taken_back.py", "test_edge_corner_sigma.py",
 })
 
 
