@@ -113,8 +113,9 @@ class DrillRegistration:
 def _corner_extra_px(marker: VideoMarker, *, solve_sigma_px: float = CORNER_SIGMA_PX) -> float:
     """The extra noise (px) the joint solve charges each corner of ``marker``'s tag over its own ``solve_sigma_px``:
     its corners' misfit to a view of its square (:func:`.joint_solve.square_misfit_noise_px`) and what its stated
-    corner noise exceeds that by (a recovered tag's ``RECOVERED_CORNER_SIGMA_PX``), added in quadrature."""
-    stated = float(np.sqrt(max(marker.corner_sigma_px**2 - solve_sigma_px**2, 0.0)))
+    corner noise exceeds that by (a recovered tag's ``RECOVERED_CORNER_SIGMA_PX``, a detected tag's edges'
+    ``VideoMarker.edge_sigma_px``), added in quadrature."""
+    stated = float(np.sqrt(max(max(marker.corner_sigma_px, marker.edge_sigma_px) ** 2 - solve_sigma_px**2, 0.0)))
     return float(np.hypot(square_misfit_noise_px(marker.reprojection_error_px), stated))
 
 

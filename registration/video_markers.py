@@ -61,12 +61,12 @@ SQUARE_MISFIT_MIN_PX = 0.2
 # fitted to samples of the edges' middle 60 %, which scatter about their lines by s px RMS; a blur w px wide leaves
 # about 0.6 side / w of them independent (n, 2 to the samples taken). A line so fitted places its ends, half a side
 # from its middle, to s sqrt((1 + 12 (0.5 / 0.6)^2) / n) = 3.05 s / sqrt(n); EDGE_SIGMA_GAIN times that is the tag's
-# stated corner noise (``VideoMarker.corner_sigma_px``), which the joint solve charges where it exceeds its own
+# stated corner noise (``VideoMarker.edge_sigma_px``), which the joint solve charges where it exceeds its own
 # (:func:`.video_fluoro._corner_extra_px`). Most of a tag's corner error moves its corners as another view of the
 # square would (a tilt, a turn): its pose absorbs it and no residual shows it, but its edges do. Against the twin's
 # truth under every camera degradation (seeds 9200-9207, 4 frames each, the corners' error less its shift and scale,
 # RMS): at 1280x720 (85 tags) the bare prediction (gain 1) states 0.11 px RMS where the tags were 0.15 px off, at
-# 640x480 (88 tags) 0.20 px where they were 0.47 px off; the gain of 2 states 0.21 and 0.40 px. At 1280x720 that stays
+# 640x480 (88 tags) 0.20 px where they were 0.47 px off; the gain of 2 states 0.22 and 0.39 px. At 1280x720 that stays
 # under the joint solve's own 0.3 px for nearly every tag: only the smaller frame's tags are charged more.
 EDGE_SIGMA_PER_SAMPLE = 3.05
 EDGE_SIGMA_GAIN = 2.0
@@ -107,6 +107,9 @@ class VideoMarker:
         verified by the code cells that could be read (:mod:`.tag_recovery`).
     corner_sigma_px : the corner noise (1 sigma, px) ``covariance_mm2`` was computed with: larger for a recovered
         tag (up to one corner is the crossing of two partly hidden edges).
+    edge_sigma_px : a detected tag's corner noise as its own edges' scatter states it (:func:`edge_corner_sigma_px`;
+        0 where its edges were not fitted, and for a recovered tag): the joint solve charges it where it exceeds its
+        own (:func:`.video_fluoro._corner_extra_px`).
     named_among_posed : its code read only in part, it was named among the markers posed in fluoroscopy that the
         frame had not found (:mod:`.tag_hypotheses`), and a registration bore the name out; also ``recovered``.
     identified_by_code : ``named_among_posed`` only: its code, though read in part, also meets the dictionary-wide
@@ -127,6 +130,7 @@ class VideoMarker:
     reprojection_error_px: float
     recovered: bool = False
     corner_sigma_px: float = 0.1
+    edge_sigma_px: float = 0.0
     named_among_posed: bool = False
     identified_by_code: bool = False
     named_among_set: bool = False
@@ -658,22 +662,21 @@ class VideoMarkerLocator:
         if not profiles:
             return marker
         moved = self._pose(spec, moved_outline(marker.corners_px, shift), corner_sigma_px=marker.corner_sigma_px if marker.recovered else None,
-                           edge_sigma_px=None if marker.recovered else marker.corner_sigma_px)
+                           edge_sigma_px=None if marker.recovered else marker.edge_sigma_px)
         return replace(moved, named_among_posed=marker.named_among_posed)
 
     def _pose(self, spec: _TagSpec, corners: NDArray[np.float64], *, corner_sigma_px: float | None = None,
               edge_sigma_px: float | None = None) -> VideoMarker:
         """The tag's pose from its ``corners`` (4, 2). ``corner_sigma_px``: a recovered tag's corner noise (marks it
-        recovered); ``edge_sigma_px``: a detected tag's, as its edges state it (:func:`edge_corner_sigma_px`), taken
-        where it exceeds the locator's."""
+        recovered); ``edge_sigma_px``: a detected tag's, as its edges state it (:func:`edge_corner_sigma_px`), kept
+        on the marker for the joint solve (``VideoMarker.edge_sigma_px``)."""
         k, dist = self.camera.camera_matrix, self.camera.distortion
         obj = spec.object_points
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         best = int(np.argmin(np.asarray(errs).ravel()))
         rvec, tvec = cv2.solvePnPRefineLM(obj, corners, k, dist, rvecs[best].copy(), tvecs[best].copy())
         sigma = self.corner_sigma_px if corner_sigma_px is None else float(corner_sigma_px)
-        if corner_sigma_px is None and edge_sigma_px is not None and np.isfinite(edge_sigma_px):
-            sigma = max(sigma, float(edge_sigma_px))
+        edge_sigma = float(edge_sigma_px) if corner_sigma_px is None and edge_sigma_px is not None and np.isfinite(edge_sigma_px) else 0.0
         # A corner the frame's edge made (an outline the edge cuts) lies somewhere along its side: weighed so, across it.
         slides = cut_corner_slides_px(corners, width=self.camera.width, height=self.camera.height)
         slid = bool(np.any(slides != 0))
@@ -702,7 +705,7 @@ class VideoMarkerLocator:
         jx = np.hstack([(dr.reshape(3, 3, 3) @ bb_tag).T, np.eye(3)])
         cov = jx @ cov_pose @ jx.T
         return VideoMarker(marker_id=spec.marker_id, corners_px=corners, camera_from_tag=camera_from_tag, position_camera_mm=x_d, covariance_mm2=cov, reprojection_error_px=err,
-                           recovered=corner_sigma_px is not None, corner_sigma_px=sigma)
+                           recovered=corner_sigma_px is not None, corner_sigma_px=sigma, edge_sigma_px=edge_sigma)
 
 
 def _corner_whitening(sigma_px: float, slides_px: NDArray[np.float64]) -> list[NDArray[np.float64]]:

@@ -50,7 +50,7 @@ def _stated_and_true(size: tuple[int, int]) -> tuple[float, float]:
                 if np.linalg.norm(err, axis=1).max() > 4.0:
                     continue
                 _, _, rest = split(err, truth)
-                stated.append(v.corner_sigma_px)
+                stated.append(v.edge_sigma_px)
                 true.append(float(np.sqrt(np.sum(rest**2) / 5)))
     assert len(stated) >= 10, len(stated)
     return float(np.sqrt(np.mean(np.square(stated)))), float(np.sqrt(np.mean(np.square(true))))
