@@ -436,7 +436,7 @@ def _rings_taken_back(poses: list, detections: list[FluoroDetections], views: li
     out = list(poses)
     for a in list(out):
         va = _one_view(a)
-        if va is None or a not in out:
+        if va is None or not any(p is a for p in out):  # by identity: a pose holds arrays, which == cannot compare
             continue
         for b in list(out):
             vb = _one_view(b, paired_two_ways=True)
