@@ -8,7 +8,10 @@ camera
     drill pose, true intrinsics): per tag a common shift (the mean of the 4 errors, per image axis), a common
     scale (the errors' component along each corner's radius from the tag centre, averaged) and the
     independent remainder (RMS per coordinate, with the 3 fitted degrees of freedom taken out of the 8); the
-    tags' shifts and scales further split into the part common to every tag of the frame and each tag's own.
+    tags' shifts and scales further split into the part common to every tag of the frame and each tag's own;
+    and each tag's shape modes (a scale, a turn and two stretches about its centre, px at its half-diagonal:
+    :func:`shape_modes`) averaged over the frame's tags, against the RMS of their edge-stated noise
+    (``VideoMarker.edge_sigma_px``): what the joint solve's ``frame_corner_sigma_px`` states.
 fluoroscopy
     every identified BB's centre against the true view's projection of the design BB at the marker's true pose,
     split into the manufacturing part (the as-built BB's projection minus the design's: the same 3D error in
@@ -58,15 +61,27 @@ def split(err: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarr
     return shift, s * float(radius.mean()), rest
 
 
+def shape_modes(err: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """A tag's corner errors (4, 2) at its corners (4, 2) as a scale, a turn and two stretches about its centre (4,),
+    px at its half-diagonal (RMS distance of its corners from their centre), after a common shift; least squares."""
+    rel = pts - pts.mean(axis=0)
+    q = rel / np.sqrt(np.mean(np.sum(rel * rel, axis=1)))
+    x, y = q[:, 0], q[:, 1]
+    basis = np.stack([np.stack([x, y], 1), np.stack([-y, x], 1), np.stack([x, -y], 1), np.stack([y, x], 1)], axis=2).reshape(-1, 4)
+    coef, *_ = np.linalg.lstsq(basis, (err - err.mean(axis=0)).ravel(), rcond=None)
+    return coef
+
+
 def camera_errors(scene, rng_seed, poses: int) -> dict[str, list]:
     locator = VideoMarkerLocator(camera=scene.calibrated_camera, marker_ids=scene.marker_set.ids)
     pose_rng, camera_rng = np.random.default_rng([rng_seed, 2]), np.random.default_rng([rng_seed, 3])
-    out = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": []}
+    out = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": [],
+           "frame_modes": [], "frame_edge_sigma": []}
     for _ in range(poses):
         carm_from_drill = scene.drill_pose_towards(pose_rng, offset_mm=5.0, tilt_deg=5.0)
         seen = locator.locate(scene.render_camera(camera_rng, carm_from_drill=carm_from_drill))
         drill_from_carm = invert(carm_from_drill)
-        shifts, scales = [], []
+        shifts, scales, modes, edges = [], [], [], []
         for v in seen.markers:
             design = scene.marker_set.by_id(v.marker_id)
             truth = scene.true_camera.project(apply(drill_from_carm @ scene.carm_from_marker[v.marker_id], design.tag_corners_mm()))
@@ -80,6 +95,12 @@ def camera_errors(scene, rng_seed, poses: int) -> dict[str, list]:
             out["dof"].append(8 - 3)
             shifts.append(shift)
             scales.append(scale)
+            modes.append(shape_modes(err, truth))
+            if v.edge_sigma_px > 0:
+                edges.append(v.edge_sigma_px)
+        if len(modes) >= 2 and edges:
+            out["frame_modes"].append(np.mean(modes, axis=0))
+            out["frame_edge_sigma"].append(float(np.sqrt(np.mean(np.square(edges)))))
         if len(shifts) >= 2:
             # The part common to every tag of the frame (one exposure, one blur kernel) and each tag's own.
             out["frame_shift"].append(np.mean(shifts, axis=0))
@@ -136,6 +157,11 @@ def summary(d: dict[str, list]) -> dict[str, float]:
         res["frame_scale_px_rms"] = float(np.sqrt(np.mean(np.square(d["frame_scale"]))))
         res["tag_shift_within_frame_px_rms_per_axis"] = float(np.sqrt(np.mean(np.square(d["tag_shift"]))))
         res["tag_scale_within_frame_px_rms"] = float(np.sqrt(np.mean(np.square(d["tag_scale"]))))
+    if d.get("frame_modes"):
+        # Scale, turn, stretch, stretch (px at each tag's half-diagonal), the frame's mean over its tags; and the RMS of
+        # the frame's tags' edge-stated noise, to which the joint solve ties them (FRAME_CORNER_PER_EDGE_SIGMA).
+        res["frame_shape_modes_px_rms"] = np.sqrt(np.mean(np.square(d["frame_modes"]), axis=0)).round(4).tolist()
+        res["frame_edge_sigma_px_rms"] = float(np.sqrt(np.mean(np.square(d["frame_edge_sigma"]))))
     if "manufacturing" in d and d["manufacturing"]:
         res["manufacturing_px_rms_per_coord"] = float(np.sqrt(np.mean(np.concatenate(d["manufacturing"]) ** 2)))
         res["manufacturing_shift_px_rms_per_axis"] = float(np.sqrt(np.mean(np.square(d["mfg_shift"]))))
@@ -168,7 +194,8 @@ def main() -> None:
         deg = Degradations.parse(text)
         if deg.ct_anatomy and patient is None:
             patient = load_patient(args.ct)
-        cam: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": []}
+        cam: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "frame_shift": [], "frame_scale": [], "tag_shift": [], "tag_scale": [],
+                                "frame_modes": [], "frame_edge_sigma": []}
         flu: dict[str, list] = {"shift": [], "scale": [], "rest": [], "dof": [], "manufacturing": [], "mfg_shift": []}
         xray = any(getattr(deg, n) for n in ("low_dose", "ct_anatomy", "hardware", "collimator", "ii_distortion"))
         for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -187,7 +214,9 @@ def main() -> None:
                          f"independent {s['independent_px_rms_per_coord']:.3f}"
                          + (f", manufacturing {s['manufacturing_px_rms_per_coord']:.3f}" if "manufacturing_px_rms_per_coord" in s else "")
                          + (f"; of which common to the frame: shift {s['frame_shift_px_rms_per_axis']:.3f}, scale {s['frame_scale_px_rms']:.3f}"
-                            if "frame_shift_px_rms_per_axis" in s else ""))
+                            if "frame_shift_px_rms_per_axis" in s else "")
+                         + (f"; the frame's shape modes (scale, turn, stretches) {' / '.join(f'{v:.3f}' for v in s['frame_shape_modes_px_rms'])} "
+                            f"against its tags' edge-stated {s['frame_edge_sigma_px_rms']:.3f}" if "frame_shape_modes_px_rms" in s else ""))
         print(f"{deg.label():60s} camera  {fmt(c)}\n{'':60s} fluoro  {fmt(f)}", flush=True)
     print(f"seeds {args.first_seed}-{args.first_seed + args.seeds - 1}, {args.poses} camera frames per scene, views {args.views}, "
           f"camera {camera_size[0]}x{camera_size[1]}; {time.time() - t0:.0f} s")

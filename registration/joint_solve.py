@@ -51,7 +51,8 @@ from .video_markers import SQUARE_MISFIT_MIN_PX, tag_object_points
 
 __all__ = ["JointSolution", "joint_solve", "perturb_about", "project_distorted", "FOCAL_REL_SIGMA", "PRINCIPAL_SIGMA_PX", "DISTORTION_SIGMA",
            "CORNER_COMMON_PER_SIGMA", "CORNER_SCALE_PER_SIGMA", "BB_COMMON_SIGMA_PX", "BB_SCALE_SIGMA_PX",
-           "SQUARE_MISFIT_PER_RMS", "SQUARE_MISFIT_MIN_PX", "square_misfit_noise_px", "CORNER_SIGMA_PX"]
+           "SQUARE_MISFIT_PER_RMS", "SQUARE_MISFIT_MIN_PX", "square_misfit_noise_px", "CORNER_SIGMA_PX", "FRAME_CORNER_PER_EDGE_SIGMA",
+           "frame_corner_sigma_px", "frame_shape_modes", "N_FRAME_MODES"]
 
 N_INTRINSICS = 8  # focal scale (relative), cx, cy (px), distortion k1, k2, p1, p2, k3 (OpenCV's order)
 # The camera calibration's uncertainty (1 sigma) held by the priors, at a calibration's stated size: focal
@@ -78,6 +79,46 @@ CORNER_SCALE_PER_SIGMA = 1.4
 
 # A tag corner's independent noise (1 sigma, px) the solve starts from; re-estimated from the corners' residuals.
 CORNER_SIGMA_PX = 0.3
+
+# Errors shared by every tag of one frame: a motion blur streaks the whole frame one way, and where it runs across a
+# tag's black border into the code's white cells it moves the border's edges by an amount that depends on the edge's
+# direction against the streak's. Every tag's corners then err alike, a few tenths of a pixel, in four modes of its
+# shape (about its own centre, at its half-diagonal): a scale, a turn, and two stretches. A stretch of a tag's image
+# reads as a tilt of its normal (the more, the nearer the tag is to face-on); common to the frame's tags, it tilts
+# every tag's normal the same way, which no number of tags averages out. Measured against the twin's truth (every camera
+# degradation, seeds 9100-9107, 3 frames each, a frame's mean over its tags; benchmarks/noise_decomposition.py): at
+# 640x480 (tags 41 px to the half-diagonal) 0.24 / 0.26 / 0.24 / 0.19 px RMS, at 1280x720 (79 px) 0.10 / 0.06 / 0.10 /
+# 0.10 px; at 640x480 motion blur alone makes most of them. The covariance carries them at FRAME_CORNER_PER_EDGE_SIGMA
+# times the RMS of the frame's tags' edge-stated noise (``VideoMarker.edge_sigma_px``, which grows with the same blur
+# against the same tags): 0.41 px at 640x480 and 0.24 px at 1280x720 there, against which the shared modes were
+# 0.46-0.63 and 0.27-0.43 of it. They are not solved for: held as unknowns under a prior of that size (as the
+# intrinsics are), they moved the 640x480 axis by more than they held it (seeds 32903-32905: two-view angle RMS 0.195
+# -> 0.238 deg).
+N_FRAME_MODES = 4
+FRAME_CORNER_PER_EDGE_SIGMA = 0.6
+
+
+def frame_corner_sigma_px(edge_sigma_px) -> float:
+    """The size (1 sigma, px at each tag's half-diagonal) of the shape modes every tag of a frame shares
+    (:data:`FRAME_CORNER_PER_EDGE_SIGMA`), from its detected tags' edge-stated noises ``edge_sigma_px`` (K,) px (those at
+    0, not stated, left out); 0 where none is stated (nothing is then carried)."""
+    e = np.asarray([float(v) for v in edge_sigma_px if np.isfinite(v) and v > 0], dtype=np.float64)
+    return float(FRAME_CORNER_PER_EDGE_SIGMA * np.sqrt(np.mean(e**2))) if len(e) else 0.0
+
+
+def frame_shape_modes(groups_px: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The shape modes (N, 2, N_FRAME_MODES) every tag of a frame shares, at each observed corner of ``groups_px`` (each
+    tag's kept corners (k, 2) px): scale, turn, and the two stretches about the tag's centre, one unit at its
+    half-diagonal (RMS distance of its corners from their centre)."""
+    out = []
+    for g in groups_px:
+        g = np.asarray(g, dtype=np.float64).reshape(-1, 2)
+        rel = g - g.mean(axis=0)
+        half = float(np.sqrt(np.mean(np.sum(rel * rel, axis=1))))
+        q = rel / half if half > 0 else np.zeros_like(rel)
+        x, y = q[:, 0], q[:, 1]
+        out.append(np.stack([np.stack([x, y], axis=1), np.stack([-y, x], axis=1), np.stack([x, -y], axis=1), np.stack([y, x], axis=1)], axis=2))
+    return np.concatenate(out) if out else np.zeros((0, 2, N_FRAME_MODES))
 
 # A tag's four corners fit a view of its square (its size, the calibrated camera) with 2 degrees of freedom to
 # spare: an RMS misfit r (px, over the corners) says each corner coordinate is off by about sqrt(2) r. Under every
@@ -204,6 +245,7 @@ def joint_solve(
     strokes: dict[int, tuple] | None = None,
     rolls: dict[int, tuple] | None = None,
     outlines: dict[int, tuple] | None = None,
+    frame_corner_sigma_px: float = 0.0,
     refine: bool = True,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
@@ -253,6 +295,8 @@ def joint_solve(
     each anchor's image along its normal, with its own noise; each view's rows join that marker's BBs in the view (at
     least 3), whose shared shift and scale they share (``bb_common_sigma_px``, ``bb_scale_sigma_px``), and count in
     its chi.
+    ``frame_corner_sigma_px``: the size (1 sigma, px at a tag's half-diagonal) of the four shape modes every tag of the
+    frame shares (:func:`frame_corner_sigma_px`), which the covariance carries (not solved for); 0: none.
     ``refine`` False: the plain fit's solution at the starting poses as given, no step taken (its chi-square is how
     well those poses fit: a mirror image that the refinement would leave for the best solution).
     """
@@ -284,8 +328,11 @@ def joint_solve(
         raise ValueError(f"a tag's corner slides must be finite, got {corner_slide}")
     corner_slide = {i: v for i, v in corner_slide.items() if np.any(v != 0)}
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
+    frame_sigma = float(frame_corner_sigma_px)
+    if not (np.isfinite(frame_sigma) and frame_sigma >= 0):
+        raise ValueError(f"the frame's shared corner modes need a finite sigma >= 0 px, got {frame_corner_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
-            crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}), dict(outlines or {}))
+            crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}), dict(outlines or {}), frame_sigma)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.
     corners_px = {i: np.asarray(corners_px[i], dtype=np.float64).reshape(4, 2) for i in ids}
     sol = _solve(ids, observations, corners_px, drill0, markers0, *args, loss="linear", max_nfev=None if refine else 1)
@@ -707,8 +754,8 @@ def _group_whitening(groups_px: list[NDArray[np.float64]], sigma_px: float, shif
 
 def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
            fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_px, corner_scale_px, bb_common_px, bb_scale_px, crowding: bool,
-           corner_extra: dict[int, float], corner_slide: dict[int, NDArray[np.float64]], anchors: dict, strokes: dict, rolls: dict, outlines: dict, *, loss: str,
-           max_nfev: int | None = None) -> JointSolution:
+           corner_extra: dict[int, float], corner_slide: dict[int, NDArray[np.float64]], anchors: dict, strokes: dict, rolls: dict, outlines: dict,
+           frame_sigma_px: float = 0.0, *, loss: str, max_nfev: int | None = None) -> JointSolution:
     # The markers the camera sees (``ids``, m of them, first) and the fluoroscopy-only ones (``anchors``): every
     # one has a pose; only the first m have tag corners.
     m = len(ids)
@@ -792,6 +839,8 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     c_extra = [np.full(int(keep.sum()), corner_extra.get(i, 0.0)) for i, keep in zip(ids, c_keep)] if any(i in corner_extra for i in ids) else None
     c_slide = [corner_slide[i][keep] if i in corner_slide else np.zeros((int(keep.sum()), 2)) for i, keep in zip(ids, c_keep)] if any(i in corner_slide for i in ids) else None
     wc, c_noise, _ = _group_whitening(c_groups, corner_sigma_px, corner_common_px, corner_scale_px, c_extra, c_slide)
+    # The frame's shared shape modes (FRAME_CORNER_PER_EDGE_SIGMA) at each observed corner, (N, 2, 4).
+    c_modes = frame_shape_modes(c_groups)
     # Ring strokes of edge-on markers (the camera's markers only): one row each, an anchor's image along a normal.
     s_rows = [(k, view, np.asarray(a, dtype=np.float64).reshape(-1, 3), np.asarray(nv, dtype=np.float64).reshape(-1, 2), np.asarray(o, dtype=np.float64).reshape(-1),
                np.asarray(sg, dtype=np.float64).reshape(-1))
@@ -972,6 +1021,15 @@ def _solve(ids, observations, corners_px, drill0, markers0, marker_set, camera,
     w = 1.0 / scales
     jw = jac * w[:, None]
     cov = np.linalg.pinv(jw.T @ jw)
+    if frame_sigma_px > 0:
+        # The frame's shared shape modes are not solved for (solved, they took their share of every tag's own noise and
+        # moved the axis more than they held it: docs/identity_and_error.md); the covariance carries what a draw of
+        # them at their prior does to this solution, as a considered parameter: its sensitivity to them is
+        # -cov J^T J_modes (the corners' rows, whitened as the residuals are).
+        j_modes = np.zeros((len(res), N_FRAME_MODES))
+        j_modes[n_f : n_f + n_c] = (wc @ c_modes.reshape(-1, N_FRAME_MODES)) / c_noise[:, None]
+        sens = cov @ (jw.T @ (j_modes * w[:, None]))
+        cov = cov + frame_sigma_px**2 * (sens @ sens.T)
     return JointSolution(
         carm_from_drill=drill,
         carm_from_marker={i: make_transform(rot[k], t[k]) for k, i in enumerate(ids)},

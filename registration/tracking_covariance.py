@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .camera import PinholeCamera
+from .joint_solve import N_FRAME_MODES, frame_shape_modes
 from .transforms import invert
 
 __all__ = ["corner_pnp_covariance"]
@@ -40,12 +41,14 @@ def _project(carm_from_drill: NDArray[np.float64], points_carm_mm: NDArray[np.fl
 
 
 def corner_pnp_covariance(carm_from_drill: NDArray[np.float64], *, points_carm_mm: NDArray[np.float64], sigma_px: NDArray[np.float64],
-                          camera: PinholeCamera, pivot_carm_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+                          camera: PinholeCamera, pivot_carm_mm: NDArray[np.float64], frame_sigma_px: float = 0.0) -> NDArray[np.float64]:
     """(6, 6) covariance of ``carm_from_drill`` (4, 4) from its corner PnP, the points fixed.
 
-    ``points_carm_mm`` (N, 3): the tag corners in frame C; ``sigma_px`` (N,): each corner's noise (1 sigma per image
-    coordinate). Central differences of the projections give the Jacobian (2N, 6); the covariance is the inverse of
-    its weighted normal matrix (a pseudo-inverse where the corners leave a direction free).
+    ``points_carm_mm`` (N, 3): the tag corners in frame C, four per tag in turn; ``sigma_px`` (N,): each corner's noise
+    (1 sigma per image coordinate). Central differences of the projections give the Jacobian (2N, 6); the covariance
+    is the inverse of its weighted normal matrix (a pseudo-inverse where the corners leave a direction free).
+    ``frame_sigma_px``: the shape modes every tag of the frame shares (:data:`.joint_solve.FRAME_CORNER_PER_EDGE_SIGMA`),
+    carried as the joint solve carries them: what a draw of them at this size does to the PnP's pose.
     """
     points = np.ascontiguousarray(points_carm_mm, dtype=np.float64).reshape(-1, 3)
     sigma = np.repeat(np.asarray(sigma_px, dtype=np.float64).reshape(-1), 2)
@@ -58,4 +61,10 @@ def corner_pnp_covariance(carm_from_drill: NDArray[np.float64], *, points_carm_m
         jac[:, k] = (_project(_perturbed(carm_from_drill, step, pivot_carm_mm), points, camera)
                      - _project(_perturbed(carm_from_drill, -step, pivot_carm_mm), points, camera)) / (2 * h)
     weighted = jac / sigma[:, None]
-    return np.linalg.pinv(weighted.T @ weighted)
+    cov = np.linalg.pinv(weighted.T @ weighted)
+    if frame_sigma_px > 0 and points.shape[0] % 4 == 0:
+        at = _project(carm_from_drill, points, camera).reshape(-1, 4, 2)
+        modes = frame_shape_modes(list(at)).reshape(-1, N_FRAME_MODES) / sigma[:, None]
+        sens = cov @ (weighted.T @ modes)
+        cov = cov + float(frame_sigma_px) ** 2 * (sens @ sens.T)
+    return cov

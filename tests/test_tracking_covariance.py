@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drillnav.registration.camera import PinholeCamera
+from drillnav.registration.joint_solve import frame_shape_modes
 from drillnav.registration.tracking_covariance import corner_pnp_covariance
 from drillnav.registration.transforms import apply, invert, make_transform
 
@@ -25,7 +26,7 @@ ONE = _tags([[0.0, 0, 0]])
 THREE = _tags([[0.0, 0, 0], [45, 10, 3], [-20, 40, -2]])
 
 
-def _monte_carlo(points: np.ndarray, sigma: float, n: int = 400) -> np.ndarray:
+def _monte_carlo(points: np.ndarray, sigma: float, n: int = 400, frame_px: float = 0.0) -> np.ndarray:
     rng = np.random.default_rng(7)
     drill_from_carm = invert(CARM_FROM_DRILL)
     rvec0, _ = cv2.Rodrigues(drill_from_carm[:3, :3])
@@ -34,6 +35,8 @@ def _monte_carlo(points: np.ndarray, sigma: float, n: int = 400) -> np.ndarray:
     deltas = []
     for _ in range(n):
         noisy = clean.reshape(-1, 2) + rng.normal(scale=sigma, size=(len(points), 2))
+        if frame_px:  # every tag scaled, turned and stretched about its centre alike (the frame's shared shape)
+            noisy += (frame_shape_modes(list(clean.reshape(-1, 4, 2))) @ rng.normal(scale=frame_px, size=4)).reshape(-1, 2)
         rvec, tvec = cv2.solvePnPRefineLM(points, noisy, CAMERA.camera_matrix, CAMERA.distortion, rvec0.copy(), tvec0.copy())
         est = invert(make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel()))
         r = est[:3, :3] @ CARM_FROM_DRILL[:3, :3].T  # the rotation applied in C
@@ -64,3 +67,16 @@ def test_one_tag_leaves_the_tilt_far_less_sure_than_three_and_the_noise_scales_i
 def test_a_sigma_per_corner_that_does_not_match_the_points_is_refused():
     with pytest.raises(ValueError, match="4 points but 3 corner sigmas"):
         corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE, sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT)
+
+
+def test_the_shape_every_tag_of_the_frame_shares_is_carried():
+    """A motion blur scales, turns and stretches every tag of the frame alike (0.4 px at each tag's half-diagonal on
+    top of 0.2 px independent noise): with it stated, the covariance follows the PnP's scatter; without it, the tilt's
+    spread is understated."""
+    points = apply(CARM_FROM_DRILL, THREE)
+    kw = dict(points_carm_mm=points, sigma_px=np.full(len(points), 0.2), camera=CAMERA, pivot_carm_mm=PIVOT)
+    drawn = _monte_carlo(points, 0.2, frame_px=0.4)
+    stated = corner_pnp_covariance(CARM_FROM_DRILL, frame_sigma_px=0.4, **kw)
+    np.testing.assert_allclose(np.sqrt(np.diag(stated)), np.sqrt(np.diag(drawn)), rtol=0.15)
+    blind = corner_pnp_covariance(CARM_FROM_DRILL, **kw)
+    assert np.trace(drawn[:3, :3]) > 2 * np.trace(blind[:3, :3])
