@@ -62,7 +62,9 @@ def corner_pnp_covariance(carm_from_drill: NDArray[np.float64], *, points_carm_m
                      - _project(_perturbed(carm_from_drill, -step, pivot_carm_mm), points, camera)) / (2 * h)
     weighted = jac / sigma[:, None]
     cov = np.linalg.pinv(weighted.T @ weighted)
-    if frame_sigma_px > 0 and points.shape[0] % 4 == 0:
+    if frame_sigma_px > 0:
+        if points.shape[0] % 4:
+            raise ValueError(f"the frame's shared tag shape needs each tag's four corners in turn, got {points.shape[0]} points")
         at = _project(carm_from_drill, points, camera).reshape(-1, 4, 2)
         modes = frame_shape_modes(list(at)).reshape(-1, N_FRAME_MODES) / sigma[:, None]
         sens = cov @ (weighted.T @ modes)

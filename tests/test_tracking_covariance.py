@@ -67,6 +67,8 @@ def test_one_tag_leaves_the_tilt_far_less_sure_than_three_and_the_noise_scales_i
 def test_a_sigma_per_corner_that_does_not_match_the_points_is_refused():
     with pytest.raises(ValueError, match="4 points but 3 corner sigmas"):
         corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE, sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT)
+    with pytest.raises(ValueError, match="four corners in turn, got 3 points"):
+        corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE[:3], sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT, frame_sigma_px=0.3)
 
 
 def test_the_shape_every_tag_of_the_frame_shares_is_carried():
