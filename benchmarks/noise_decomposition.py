@@ -41,6 +41,7 @@ from accuracy import CT, load_patient  # noqa: E402  (the study's patient)
 from drillnav.drivers.sim.degradations import Degradations
 from drillnav.drivers.sim.scene import make_scene, render_fluoro
 from drillnav.registration.fluoro_markers import detect_in_view
+from drillnav.registration.joint_solve import frame_shape_modes
 from drillnav.registration.transforms import apply, invert
 from drillnav.registration.video_markers import VideoMarkerLocator
 
@@ -64,10 +65,7 @@ def split(err: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarr
 def shape_modes(err: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """A tag's corner errors (4, 2) at its corners (4, 2) as a scale, a turn and two stretches about its centre (4,),
     px at its half-diagonal (RMS distance of its corners from their centre), after a common shift; least squares."""
-    rel = pts - pts.mean(axis=0)
-    q = rel / np.sqrt(np.mean(np.sum(rel * rel, axis=1)))
-    x, y = q[:, 0], q[:, 1]
-    basis = np.stack([np.stack([x, y], 1), np.stack([-y, x], 1), np.stack([x, -y], 1), np.stack([y, x], 1)], axis=2).reshape(-1, 4)
+    basis = frame_shape_modes([pts]).reshape(-1, 4)  # the joint solve's own
     coef, *_ = np.linalg.lstsq(basis, (err - err.mean(axis=0)).ravel(), rcond=None)
     return coef
 

@@ -245,7 +245,7 @@ def joint_solve(
     strokes: dict[int, tuple] | None = None,
     rolls: dict[int, tuple] | None = None,
     outlines: dict[int, tuple] | None = None,
-    frame_corner_sigma_px: float = 0.0,
+    frame_shape_sigma_px: float = 0.0,
     refine: bool = True,
 ) -> JointSolution:
     """Solve all marker poses and ``carm_from_drill`` together.
@@ -295,7 +295,7 @@ def joint_solve(
     each anchor's image along its normal, with its own noise; each view's rows join that marker's BBs in the view (at
     least 3), whose shared shift and scale they share (``bb_common_sigma_px``, ``bb_scale_sigma_px``), and count in
     its chi.
-    ``frame_corner_sigma_px``: the size (1 sigma, px at a tag's half-diagonal) of the four shape modes every tag of the
+    ``frame_shape_sigma_px``: the size (1 sigma, px at a tag's half-diagonal) of the four shape modes every tag of the
     frame shares (:func:`frame_corner_sigma_px`), which the covariance carries (not solved for); 0: none.
     ``refine`` False: the plain fit's solution at the starting poses as given, no step taken (its chi-square is how
     well those poses fit: a mirror image that the refinement would leave for the best solution).
@@ -328,9 +328,9 @@ def joint_solve(
         raise ValueError(f"a tag's corner slides must be finite, got {corner_slide}")
     corner_slide = {i: v for i, v in corner_slide.items() if np.any(v != 0)}
     anchors = _distortion_anchors(fluoro_only or {}, ids, observations)
-    frame_sigma = float(frame_corner_sigma_px)
+    frame_sigma = float(frame_shape_sigma_px)
     if not (np.isfinite(frame_sigma) and frame_sigma >= 0):
-        raise ValueError(f"the frame's shared corner modes need a finite sigma >= 0 px, got {frame_corner_sigma_px}")
+        raise ValueError(f"the frame's shared corner modes need a finite sigma >= 0 px, got {frame_shape_sigma_px}")
     args = (marker_set, camera, fluoro_sigma_px, corner_sigma_px, prior_sigma, corner_common_sigma_px, corner_scale_sigma_px, bb_common_sigma_px, bb_scale_sigma_px,
             crowded_bbs, corner_extra, corner_slide, anchors, dict(strokes or {}), dict(rolls or {}), dict(outlines or {}), frame_sigma)
     # Most shots are clean: one plain fit, accepted when no marker and no BB stands out.

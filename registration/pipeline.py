@@ -766,7 +766,7 @@ def _tracked(image: NDArray[np.uint8], video: VideoDetections, *, refinement: Jo
         points = np.concatenate([apply(reg.carm_from_marker[i], marker_set.by_id(i).tag_corners_mm()) for i in ids])
         sigma = np.repeat([max(vids[i].corner_sigma_px, reg.corner_rms_px) for i in ids], 4)
         own = corner_pnp_covariance(reg.carm_from_drill, points_carm_mm=points, sigma_px=sigma, camera=recover["camera"], pivot_carm_mm=pivot,
-                                    frame_sigma_px=frame_corner_sigma_px([v.edge_sigma_px for v in video.markers]))
+                                    frame_shape_sigma_px=frame_corner_sigma_px([v.edge_sigma_px for v in video.markers]))
     return video, replace(reg, covariance_drill=refinement.covariance_drill + own, pivot_carm_mm=pivot,
                           method="horn+pnp on joint-refined markers", detector_distortion_px=refinement.detector_distortion_px)
 

@@ -41,13 +41,13 @@ def _project(carm_from_drill: NDArray[np.float64], points_carm_mm: NDArray[np.fl
 
 
 def corner_pnp_covariance(carm_from_drill: NDArray[np.float64], *, points_carm_mm: NDArray[np.float64], sigma_px: NDArray[np.float64],
-                          camera: PinholeCamera, pivot_carm_mm: NDArray[np.float64], frame_sigma_px: float = 0.0) -> NDArray[np.float64]:
+                          camera: PinholeCamera, pivot_carm_mm: NDArray[np.float64], frame_shape_sigma_px: float = 0.0) -> NDArray[np.float64]:
     """(6, 6) covariance of ``carm_from_drill`` (4, 4) from its corner PnP, the points fixed.
 
     ``points_carm_mm`` (N, 3): the tag corners in frame C, four per tag in turn; ``sigma_px`` (N,): each corner's noise
     (1 sigma per image coordinate). Central differences of the projections give the Jacobian (2N, 6); the covariance
     is the inverse of its weighted normal matrix (a pseudo-inverse where the corners leave a direction free).
-    ``frame_sigma_px``: the shape modes every tag of the frame shares (:data:`.joint_solve.FRAME_CORNER_PER_EDGE_SIGMA`),
+    ``frame_shape_sigma_px``: the shape modes every tag of the frame shares (:data:`.joint_solve.FRAME_CORNER_PER_EDGE_SIGMA`),
     carried as the joint solve carries them: what a draw of them at this size does to the PnP's pose.
     """
     points = np.ascontiguousarray(points_carm_mm, dtype=np.float64).reshape(-1, 3)
@@ -62,11 +62,11 @@ def corner_pnp_covariance(carm_from_drill: NDArray[np.float64], *, points_carm_m
                      - _project(_perturbed(carm_from_drill, -step, pivot_carm_mm), points, camera)) / (2 * h)
     weighted = jac / sigma[:, None]
     cov = np.linalg.pinv(weighted.T @ weighted)
-    if frame_sigma_px > 0:
+    if frame_shape_sigma_px > 0:
         if points.shape[0] % 4:
             raise ValueError(f"the frame's shared tag shape needs each tag's four corners in turn, got {points.shape[0]} points")
         at = _project(carm_from_drill, points, camera).reshape(-1, 4, 2)
         modes = frame_shape_modes(list(at)).reshape(-1, N_FRAME_MODES) / sigma[:, None]
         sens = cov @ (weighted.T @ modes)
-        cov = cov + float(frame_sigma_px) ** 2 * (sens @ sens.T)
+        cov = cov + float(frame_shape_sigma_px) ** 2 * (sens @ sens.T)
     return cov

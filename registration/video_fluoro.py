@@ -218,7 +218,7 @@ def register_video_to_fluoro(
                      marker_set=marker_set, camera=camera, min_markers=min(HORN_MIN_MARKERS, len(joinable)),
                      corner_extra_px={i: _corner_extra_px(vids[i]) for i in joinable},
                      corner_slide_px={i: cut_corner_slides_px(vids[i].corners_px, width=camera.width, height=camera.height) for i in joinable},
-                     frame_corner_sigma_px=frame_corner_sigma_px([v.edge_sigma_px for v in video.markers]),
+                     frame_shape_sigma_px=frame_corner_sigma_px([v.edge_sigma_px for v in video.markers]),
                      fluoro_only={i: (p.observations, p.carm_from_marker) for i, p in every.items()
                                   if i not in joinable and p.converged and p.mirror_carm_from_marker is None and not p.needs_camera})
         sol = joint_solve(carm_from_drill0=carm_from_drill, carm_from_marker0=carm_from_marker, **solve)

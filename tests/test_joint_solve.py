@@ -145,7 +145,7 @@ def test_covariance_carries_the_shape_every_tag_of_a_frame_shares(ap_scene):
     A stretch reads as a tilt of each tag's normal, the same way for every tag. With the four shared modes stated at
     that size the covariance follows the scatter (measured 6.6); blind to them, it does not (19.6)."""
     scene, _ = ap_scene
-    d2 = _scatter_d2(scene, np.random.default_rng(13), shared=True, frame_px=0.6, frame_corner_sigma_px=0.6)
+    d2 = _scatter_d2(scene, np.random.default_rng(13), shared=True, frame_px=0.6, frame_shape_sigma_px=0.6)
     assert 3.0 < d2 < 12.0, d2
     assert _scatter_d2(scene, np.random.default_rng(13), shared=True, frame_px=0.6) > 15.0
 

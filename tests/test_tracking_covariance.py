@@ -68,7 +68,7 @@ def test_a_sigma_per_corner_that_does_not_match_the_points_is_refused():
     with pytest.raises(ValueError, match="4 points but 3 corner sigmas"):
         corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE, sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT)
     with pytest.raises(ValueError, match="four corners in turn, got 3 points"):
-        corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE[:3], sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT, frame_sigma_px=0.3)
+        corner_pnp_covariance(CARM_FROM_DRILL, points_carm_mm=ONE[:3], sigma_px=np.ones(3), camera=CAMERA, pivot_carm_mm=PIVOT, frame_shape_sigma_px=0.3)
 
 
 def test_the_shape_every_tag_of_the_frame_shares_is_carried():
@@ -78,7 +78,7 @@ def test_the_shape_every_tag_of_the_frame_shares_is_carried():
     points = apply(CARM_FROM_DRILL, THREE)
     kw = dict(points_carm_mm=points, sigma_px=np.full(len(points), 0.2), camera=CAMERA, pivot_carm_mm=PIVOT)
     drawn = _monte_carlo(points, 0.2, frame_px=0.4)
-    stated = corner_pnp_covariance(CARM_FROM_DRILL, frame_sigma_px=0.4, **kw)
+    stated = corner_pnp_covariance(CARM_FROM_DRILL, frame_shape_sigma_px=0.4, **kw)
     np.testing.assert_allclose(np.sqrt(np.diag(stated)), np.sqrt(np.diag(drawn)), rtol=0.15)
     blind = corner_pnp_covariance(CARM_FROM_DRILL, **kw)
     assert np.trace(drawn[:3, :3]) > 2 * np.trace(blind[:3, :3])
